@@ -1,0 +1,228 @@
+"""The streaming reconstructor: blocks of packed frames in, reconstructed frames out.
+
+One implementation serves the offline CLI (fed from a file) and the live worker (fed from the
+ring buffer). It keeps the most recent packed frames in a mirrored ring (every frame is
+written twice, ``capacity`` apart, so any window is one contiguous slice) and unpacks only the
+window a requested output needs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any
+
+import numpy as np
+
+from cfsr._bits import unpack_frames
+from cfsr.layout import Layout
+from cfsr.methods.registry import Method, Output, get_method, resolve_params
+
+__all__ = ["StreamingReconstructor"]
+
+
+class StreamingReconstructor:
+    """Reconstruct frames from a stream of packed spike blocks.
+
+    Parameters
+    ----------
+    method : str
+        Registered method name (see :func:`cfsr.methods`).
+    layout : Layout
+        Geometry/orientation of the packed frames pushed in.
+    params : mapping, optional
+        Method parameters (validated; unknown names are an error).
+    preset : str, optional
+        Named preset applied before ``params``.
+    slack : int
+        Extra frames kept beyond the method's window, so a pushed block never evicts a frame
+        still needed (steps).
+
+    Notes
+    -----
+    Step indices are absolute int64 (1 step = 25 us). A block whose first step is not the one
+    expected means data were lost: the history is discarded and ``gaps`` counts it, because a
+    window spanning the hole would give wrong intervals.
+    """
+
+    def __init__(
+        self,
+        method: str,
+        layout: Layout,
+        *,
+        params: Mapping[str, Any] | None = None,
+        preset: str | None = None,
+        slack: int = 4096,
+    ) -> None:
+        self.layout = layout
+        self.slack = int(slack)
+        self.gaps = 0
+        self._buf: np.ndarray | None = None
+        self._first = 0  # absolute step of the oldest buffered frame
+        self._next = 0  # absolute step expected next
+        self._count = 0  # buffered frames
+        self.set_method(method, params=params, preset=preset)
+
+    # -- configuration -------------------------------------------------------------------
+    def set_method(
+        self, method: str, *, params: Mapping[str, Any] | None = None, preset: str | None = None
+    ) -> None:
+        """Switch method/parameters at run time; buffered history is kept when it fits."""
+        m: Method = get_method(method)
+        p = resolve_params(m, params, preset)
+        before, after = m.window(p)
+        self.method, self.params = m, p
+        self.before, self.after = int(before), int(after)
+        cap = self.before + self.after + 1 + self.slack
+        if self._buf is None or self._buf.shape[0] < 2 * cap:
+            old = self._snapshot()
+            self._capacity = cap
+            self._buf = np.zeros((2 * cap, self.layout.frame_bytes), np.uint8)
+            self._count = 0
+            if old is not None:
+                start, data = old
+                self._first = self._next = start
+                self._append(data[-cap:], start + max(0, len(data) - cap))
+
+    def _snapshot(self) -> tuple[int, np.ndarray] | None:
+        if self._buf is None or self._count == 0:
+            return None
+        return self._first, self.packed(self._first, self._next).copy()
+
+    # -- input ---------------------------------------------------------------------------
+    @property
+    def first_step(self) -> int:
+        """Oldest buffered step."""
+        return self._first
+
+    @property
+    def next_step(self) -> int:
+        """One past the newest buffered step."""
+        return self._next
+
+    def reset(self, start: int = 0) -> None:
+        self._count = 0
+        self._first = self._next = int(start)
+
+    def push(self, packed: np.ndarray, start: int | None = None) -> None:
+        """Append packed frames ``(n, frame_bytes)`` whose first frame is step ``start``."""
+        packed = np.asarray(packed, dtype=np.uint8)
+        if packed.ndim == 1:
+            packed = packed.reshape(-1, self.layout.frame_bytes)
+        if packed.ndim != 2 or packed.shape[1] != self.layout.frame_bytes:
+            raise ValueError(
+                f"packed block must be (n, {self.layout.frame_bytes}), got {packed.shape}"
+            )
+        start = self._next if start is None else int(start)
+        if self._count and start != self._next:
+            self.gaps += 1
+            self.reset(start)
+        elif not self._count:
+            self._first = self._next = start
+        self._append(packed, start)
+
+    def push_frames(self, frames: np.ndarray, start: int | None = None) -> None:
+        """Append upright unpacked frames (packed here in the reconstructor's layout)."""
+        from cfsr._bits import pack_frames
+
+        lay = self.layout
+        frames = np.asarray(frames)
+        if lay.head_cols:
+            pad = np.zeros(frames.shape[:2] + (lay.head_cols,), np.uint8)
+            frames = np.concatenate([frames, pad], axis=2)
+        self.push(pack_frames(frames, flipud=lay.flipud, fliplr=lay.fliplr), start)
+
+    def _append(self, packed: np.ndarray, start: int) -> None:
+        cap = self._capacity
+        buf = self._buf
+        assert buf is not None
+        if len(packed) > cap:
+            skip = len(packed) - cap
+            packed = packed[skip:]
+            start += skip
+            self._count = 0
+            self._first = start
+        n = len(packed)
+        i0 = start % cap
+        k = min(n, cap - i0)
+        buf[i0 : i0 + k] = packed[:k]
+        buf[i0 + cap : i0 + cap + k] = packed[:k]
+        if n > k:
+            buf[: n - k] = packed[k:]
+            buf[cap : cap + n - k] = packed[k:]
+        self._next = start + n
+        self._count = min(cap, self._count + n)
+        self._first = self._next - self._count
+
+    # -- output --------------------------------------------------------------------------
+    def packed(self, a: int, b: int) -> np.ndarray:
+        """Buffered packed frames of steps ``[a, b)`` as one contiguous view."""
+        if a < self._first or b > self._next or a > b:
+            raise ValueError(
+                f"steps [{a}, {b}) not buffered (have [{self._first}, {self._next}))"
+            )
+        cap = self._capacity
+        i = a % cap
+        assert self._buf is not None
+        return self._buf[i : i + (b - a)]
+
+    def can_compute(self, t: int, *, final: bool = False) -> bool:
+        """True when step ``t`` and its full window (or the stream end, if ``final``) are here."""
+        if t < self._first or t >= self._next:
+            return False
+        return final or t + self.after < self._next
+
+    def compute(self, t: int, *, final: bool = False) -> Output:
+        """Reconstruct step ``t`` from the buffered window.
+
+        The window is ``[t - before, t + after]`` clipped to what the stream holds. Pass
+        ``final=True`` at the end of a stream to accept a window clipped at the end; clipping at
+        the start happens only when ``t`` is within ``before`` steps of the stream's first step.
+        """
+        if not self.can_compute(t, final=final):
+            raise ValueError(
+                f"step {t} cannot be computed yet (buffered [{self._first}, {self._next}), "
+                f"needs {self.after} steps after)"
+            )
+        a = max(self._first, t - self.before)
+        b = min(self._next, t + self.after + 1)
+        lay = self.layout
+        window = unpack_frames(
+            self.packed(a, b),
+            lay.height,
+            lay.width,
+            stored_width=lay.stored_width,
+            flipud=lay.flipud,
+            fliplr=lay.fliplr,
+        )
+        return self.method.compute(window, t - a, a, self.params)
+
+    def latest_step(self) -> int | None:
+        """Newest step whose full window has arrived, or None."""
+        t = self._next - 1 - self.after
+        return t if t >= self._first else None
+
+    def latest(self) -> tuple[int, Output] | None:
+        """Reconstruct the newest computable step (for live display)."""
+        t = self.latest_step()
+        return None if t is None else (t, self.compute(t))
+
+    def run(
+        self, blocks: Iterable[tuple[int, np.ndarray]], times: Iterable[int]
+    ) -> Iterator[tuple[int, Output]]:
+        """Feed ``(start_step, packed_block)`` pairs; yield ``(t, Output)`` for sorted ``times``.
+
+        Each output is produced as soon as its window has arrived; the rest at stream end.
+        """
+        pending = sorted(set(int(t) for t in times))
+        k = 0
+        for start, blk in blocks:
+            self.push(blk, start)
+            while k < len(pending) and self.can_compute(pending[k]):
+                yield pending[k], self.compute(pending[k])
+                k += 1
+            while k < len(pending) and pending[k] < self._first:
+                raise ValueError(f"step {pending[k]} was evicted before it could be computed")
+        for t in pending[k:]:
+            if not self.can_compute(t, final=True):
+                raise ValueError(f"step {t} is outside the stream [{self._first}, {self._next})")
+            yield t, self.compute(t, final=True)
