@@ -1,0 +1,49 @@
+"""Shared pytest fixtures.
+
+* ``shared_data``: the project's ``../shared/data`` folder (REDS and uhsr samples); tests that
+  use it skip with a reason when it is absent -- the product never needs it.
+* ``require_tier(name, ok, why)``: system-dependent tiers (umockdev USB, Chromium) skip on a
+  developer machine that lacks them, but FAIL under ``CI=true``, where they must run.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("CFSR_SHARED_DATA", REPO.parent / "shared" / "data"))
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def require_tier(name: str, ok: bool, why: str) -> None:
+    """Skip (developer machine) or fail (CI) when system tier ``name`` cannot start."""
+    if ok:
+        return
+    msg = f"{name} tier cannot start: {why}"
+    if IN_CI:
+        pytest.fail(msg + " (CI=true: this tier must run, install it in .ci/run)")
+    pytest.skip(msg)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data folder {SHARED_DATA} is absent (optional test data)")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def reds_files(shared_data: Path) -> list[tuple[Path, Path]]:
+    """(spike .dat, ground-truth .png) pairs of the REDS samples."""
+    base = shared_data / "synthetic" / "reds_base"
+    pairs = []
+    for dat in sorted((base / "spike").glob("*.dat")):
+        png = base / "gt" / (dat.stem + ".png")
+        if png.exists():
+            pairs.append((dat, png))
+    if not pairs:
+        pytest.skip(f"no REDS samples under {base}")
+    return pairs
