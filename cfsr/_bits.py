@@ -60,9 +60,7 @@ def unpack_frames(
     return out
 
 
-def pack_frames(
-    frames: np.ndarray, *, flipud: bool = True, fliplr: bool = False
-) -> np.ndarray:
+def pack_frames(frames: np.ndarray, *, flipud: bool = True, fliplr: bool = False) -> np.ndarray:
     """Pack upright ``(n, H, W)`` 0/1 frames into ``(n, ceil(H*W/8))`` bytes, ``.dat`` layout."""
     frames = np.asarray(frames)
     if frames.ndim != 3:

@@ -280,7 +280,12 @@ def write_dat(
         h, w = arr.shape[1:]
         base_meta = dict(meta or {})
         rate = STEP_RATE_HZ if rate_hz is None else rate_hz
-    lay = layout or Layout(width=w, height=h)
+    if layout is not None:
+        lay = layout
+    elif isinstance(spikes, SpikeRecording):
+        lay = spikes.layout
+    else:
+        lay = Layout(width=w, height=h)
     if (lay.height, lay.width) != (h, w):
         raise ValueError(f"layout is {lay.width} x {lay.height} but spikes are {w} x {h}")
     with DatWriter(path, lay, rate_hz=rate, meta=base_meta) as wr:

@@ -157,9 +157,7 @@ class StreamingReconstructor:
     def packed(self, a: int, b: int) -> np.ndarray:
         """Buffered packed frames of steps ``[a, b)`` as one contiguous view."""
         if a < self._first or b > self._next or a > b:
-            raise ValueError(
-                f"steps [{a}, {b}) not buffered (have [{self._first}, {self._next}))"
-            )
+            raise ValueError(f"steps [{a}, {b}) not buffered (have [{self._first}, {self._next}))")
         cap = self._capacity
         i = a % cap
         assert self._buf is not None

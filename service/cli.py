@@ -16,7 +16,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "reconstruct": ("service.commands.reconstruct", "reconstruct images from a spike file"),
     "info": ("service.commands.info", "describe a spike file: geometry, duration, rates, problems"),
     "simulate": ("service.commands.simulate", "simulate a scene to .dat with ground truth"),
-    "evaluate": ("service.commands.evaluate", "PSNR/SSIM table of methods on scenes with ground truth"),
+    "evaluate": (
+        "service.commands.evaluate",
+        "PSNR/SSIM table of methods on scenes with ground truth",
+    ),
     "record": ("service.commands.record", "record spikes from a source to .dat + sidecar"),
     "bench": ("service.commands.bench", "benchmark run time against error, and throughput"),
     "methods": ("service.commands.methods", "list reconstruction methods and their parameters"),

@@ -82,7 +82,10 @@ register(
         params={
             "window": Param(160, "steps", "window length w", minimum=1),
             "mode": Param(
-                "trailing", "", "trailing (causal) or centred window", choices=("trailing", "centred")
+                "trailing",
+                "",
+                "trailing (causal) or centred window",
+                choices=("trailing", "centred"),
             ),
         },
         window=_window,

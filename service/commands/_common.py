@@ -1,0 +1,87 @@
+"""Helpers shared by the offline sub-commands (argument parsing of times, params, inputs)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def parse_times(text: str) -> list[int]:
+    """``"300,500"`` or ``"100:400:50"`` (start:stop[:stride], stop exclusive) -> steps."""
+    out: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if ":" in part:
+            bits = part.split(":")
+            if len(bits) not in (2, 3):
+                raise argparse.ArgumentTypeError(
+                    f"bad time range {part!r}; use START:STOP[:STRIDE]"
+                )
+            a, b = int(bits[0]), int(bits[1])
+            s = int(bits[2]) if len(bits) == 3 else 1
+            if s <= 0:
+                raise argparse.ArgumentTypeError(f"stride must be positive in {part!r}")
+            out.extend(range(a, b, s))
+        else:
+            try:
+                out.append(int(part))
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"bad time {part!r}; steps are integers") from None
+    if not out:
+        raise argparse.ArgumentTypeError(f"no times in {text!r}")
+    return out
+
+
+def parse_params(items: list[str] | None) -> dict[str, Any]:
+    """``["window=32", "mode=centred"]`` -> dict of strings (coerced later by the method)."""
+    params: dict[str, Any] = {}
+    for item in items or []:
+        for kv in item.split(","):
+            if not kv.strip():
+                continue
+            if "=" not in kv:
+                raise argparse.ArgumentTypeError(f"bad parameter {kv!r}; use NAME=VALUE")
+            k, v = kv.split("=", 1)
+            params[k.strip()] = v.strip()
+    return params
+
+
+def add_input_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="spike recording: .dat (SpikeCV/Spike-Zoo layout) or .npz")
+    g = p.add_argument_group("file layout (default: from the sidecar, else 400 x 250)")
+    g.add_argument("--width", type=int, help="image width in pixels (without head columns)")
+    g.add_argument("--height", type=int, help="image height in pixels")
+    g.add_argument(
+        "--head-cols", type=int, help="extra stored columns to drop (16 for 416-wide raw)"
+    )
+    g.add_argument(
+        "--no-flipud",
+        dest="flipud",
+        action="store_false",
+        default=None,
+        help="rows are stored upright (e.g. SPCS simulator output)",
+    )
+    g.add_argument("--fliplr", action="store_true", default=None, help="columns stored mirrored")
+    g.add_argument(
+        "--allow-partial",
+        action="store_true",
+        help="drop an incomplete trailing frame instead of failing (reported)",
+    )
+
+
+def open_input(args: argparse.Namespace):
+    from cfsr.datfile import read_spikes
+
+    if str(args.input).lower().endswith(".npz"):
+        return read_spikes(args.input)
+    return read_spikes(
+        args.input,
+        width=args.width,
+        height=args.height,
+        head_cols=args.head_cols,
+        flipud=args.flipud,
+        fliplr=args.fliplr,
+        allow_partial=args.allow_partial,
+    )

@@ -1,0 +1,92 @@
+"""``cfsr info``: geometry, duration, spike-rate statistics and problems of a spike file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+
+from service.commands._common import add_input_arguments, open_input
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_input_arguments(p)
+    p.add_argument(
+        "--all", action="store_true", help="scan every frame (default: the first 40,000 = 1 s)"
+    )
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from tqdm import tqdm
+
+    from cfsr.stats import recording_stats
+
+    # info reports a partial tail as a problem rather than refusing the file
+    args.allow_partial = True
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = open_input(args)
+    lay = rec.layout
+    limit = None if args.all else 40_000
+    total = rec.n_frames if limit is None else min(rec.n_frames, limit)
+    with tqdm(
+        total=total,
+        unit="frame",
+        disable=args.quiet or None,
+        file=sys.stderr,
+        desc="scanning",
+        mininterval=0.5,
+    ) as bar:
+        st = recording_stats(rec, max_frames=limit, progress=bar.update)
+    info = {
+        "path": rec.path,
+        "width": lay.width,
+        "height": lay.height,
+        "head_cols": lay.head_cols,
+        "flipud": lay.flipud,
+        "fliplr": lay.fliplr,
+        "frame_bytes": lay.frame_bytes,
+        "n_frames": rec.n_frames,
+        "rate_hz": rec.rate_hz,
+        "duration_s": rec.duration_s,
+        "gain": rec.gain,
+        "sidecar": bool(rec.meta),
+        **asdict(st),
+    }
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    print(f"file        {rec.path}")
+    print(
+        f"geometry    {lay.width} x {lay.height} px"
+        + (f" (+{lay.head_cols} head columns)" if lay.head_cols else "")
+        + f", {lay.frame_bytes} bytes/frame, rows {'upside down' if lay.flipud else 'upright'}"
+        + (", mirrored" if lay.fliplr else "")
+    )
+    print(f"duration    {rec.n_frames} steps = {rec.duration_s * 1e3:.3f} ms at {rec.rate_hz:g} Hz")
+    print(
+        f"sidecar     {'yes' if rec.meta else 'no'}"
+        + (f", display gain {rec.gain:g} spikes/step" if rec.gain else "")
+    )
+    print(f"spike rate  mean {st.mean_rate:.4f} spikes/step/pixel over {st.n_scanned} steps")
+    print(
+        f"per pixel   min {st.pixel_rate_min:.4f}  p1 {st.pixel_rate_p01:.4f}  "
+        f"median {st.pixel_rate_median:.4f}  p99 {st.pixel_rate_p99:.4f}  "
+        f"max {st.pixel_rate_max:.4f}"
+    )
+    print(
+        f"            {st.dead_fraction:.2%} never fired, {st.saturated_fraction:.2%} saturated, "
+        f"{st.empty_frames} empty frames"
+    )
+    if st.problems:
+        print("problems:")
+        for pr in st.problems:
+            print(f"  - {pr}")
+    else:
+        print("problems:   none found")
+    return 0

@@ -1,0 +1,138 @@
+"""The offline CLI contract: cfsr reconstruct / info / methods, run as a user would."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import cfsr
+from service.cli import main
+
+
+@pytest.fixture
+def dat(tmp_path):
+    rng = np.random.default_rng(0)
+    rate = np.linspace(0.05, 0.6, 32)[None, :].repeat(16, 0)
+    s = (rng.random((600, 16, 32)) < rate).astype(np.uint8)
+    f = tmp_path / "in.dat"
+    cfsr.write_dat(f, s, meta={"gain": 0.6})
+    return f, s
+
+
+def test_reconstruct_writes_npy_and_png(dat, tmp_path, capsys):
+    f, s = dat
+    out = tmp_path / "o"
+    rc = main(
+        [
+            "reconstruct",
+            str(f),
+            "--method",
+            "tfp",
+            "--times",
+            "300,500",
+            "--out",
+            str(out),
+            "--param",
+            "window=64",
+            "-q",
+        ]
+    )
+    assert rc == 0
+    for t in (300, 500):
+        arr = np.load(out / f"t{t}.npy")
+        assert arr.dtype == np.float32 and arr.shape == (16, 32)
+        np.testing.assert_allclose(arr, cfsr.reconstruct(s, "tfp", [t], window=64)[0])
+        png = np.asarray(Image.open(out / f"t{t}.png"))
+        assert png.dtype == np.uint8 and png.shape == (16, 32)
+    assert "2 frame(s) of tfp" in capsys.readouterr().out
+
+
+def test_reconstruct_video(dat, tmp_path):
+    import cv2
+
+    f, _ = dat
+    vid = tmp_path / "v.mp4"
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(f),
+                "-m",
+                "tfi",
+                "-t",
+                "100:400:20",
+                "--video",
+                str(vid),
+                "--no-files",
+                "-q",
+            ]
+        )
+        == 0
+    )
+    cap = cv2.VideoCapture(str(vid))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 15
+
+
+def test_reconstruct_bad_inputs_give_one_line_errors(dat, tmp_path, capsys):
+    f, _ = dat
+    assert main(["reconstruct", str(f), "-m", "nope", "-t", "1"]) == 2
+    assert "unknown method 'nope'" in capsys.readouterr().err
+    assert main(["reconstruct", str(f), "-t", "5000"]) == 2
+    assert "outside the recording" in capsys.readouterr().err
+    assert main(["reconstruct", str(f), "-t", "5", "-p", "window=abc"]) == 2
+    assert "expected int" in capsys.readouterr().err
+    bad = tmp_path / "bad.dat"
+    bad.write_bytes(bytes(12501))
+    assert main(["reconstruct", str(bad), "-t", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.dat: size 12501 bytes is not a multiple" in err
+    assert (
+        main(
+            ["reconstruct", str(bad), "-t", "0", "--allow-partial", "-q", "-o", str(tmp_path / "p")]
+        )
+        == 0
+    )
+
+
+def test_info_reports_geometry_rates_and_problems(dat, tmp_path, capsys):
+    f, s = dat
+    assert main(["info", str(f), "--json", "-q"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["width"] == 32 and info["height"] == 16 and info["n_frames"] == 600
+    assert info["duration_s"] == pytest.approx(600 / 40000)
+    assert info["mean_rate"] == pytest.approx(s.mean())
+    assert info["problems"] == []
+    partial = tmp_path / "partial.dat"
+    partial.write_bytes(bytes(12500 * 2 + 10))
+    assert main(["info", str(partial), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "10 trailing bytes" in out and "2 of 2 frames hold no spike" in out
+
+
+def test_methods_command(capsys):
+    assert main(["methods", "--json"]) == 0
+    ms = json.loads(capsys.readouterr().out)
+    assert "tfi" in ms and "tfp" in ms
+
+
+def test_console_script_help():
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "--help"], capture_output=True, text=True, check=True
+    )
+    for cmd in ("serve", "reconstruct", "info", "simulate", "evaluate", "bench"):
+        assert cmd in r.stdout
+    r = subprocess.run(
+        [sys.executable, "-m", "service.cli", "reconstruct", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "spikes/step" in r.stdout and "--masks" in r.stdout
