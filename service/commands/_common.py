@@ -6,32 +6,51 @@ import argparse
 from typing import Any
 
 
-def parse_times(text: str) -> list[int]:
-    """``"300,500"`` or ``"100:400:50"`` (start:stop[:stride], stop exclusive) -> steps."""
-    out: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if ":" in part:
-            bits = part.split(":")
-            if len(bits) not in (2, 3):
-                raise argparse.ArgumentTypeError(
-                    f"bad time range {part!r}; use START:STOP[:STRIDE]"
-                )
-            a, b = int(bits[0]), int(bits[1])
-            s = int(bits[2]) if len(bits) == 3 else 1
-            if s <= 0:
-                raise argparse.ArgumentTypeError(f"stride must be positive in {part!r}")
-            out.extend(range(a, b, s))
-        else:
+class TimeSpec:
+    """Output steps from ``"300,500"`` or ranges ``"START:STOP[:STRIDE]"`` (STOP exclusive;
+    an empty STOP means the end of each recording, e.g. ``"0::100"``)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self.parts: list[tuple[int, int | None, int]] = []
+        for part in text.split(","):
+            part = part.strip()
+            if not part:
+                continue
             try:
-                out.append(int(part))
+                if ":" in part:
+                    bits = part.split(":")
+                    if len(bits) not in (2, 3):
+                        raise ValueError
+                    a = int(bits[0] or 0)
+                    b = int(bits[1]) if bits[1] else None
+                    st = int(bits[2]) if len(bits) == 3 and bits[2] else 1
+                    if st <= 0:
+                        raise argparse.ArgumentTypeError(f"stride must be positive in {part!r}")
+                    self.parts.append((a, b, st))
+                else:
+                    t = int(part)
+                    self.parts.append((t, t + 1, 1))
             except ValueError:
-                raise argparse.ArgumentTypeError(f"bad time {part!r}; steps are integers") from None
-    if not out:
-        raise argparse.ArgumentTypeError(f"no times in {text!r}")
-    return out
+                raise argparse.ArgumentTypeError(
+                    f"bad time {part!r}; use integers (steps) or START:STOP[:STRIDE]"
+                ) from None
+        if not self.parts:
+            raise argparse.ArgumentTypeError(f"no times in {text!r}")
+
+    def resolve(self, n_frames: int) -> list[int]:
+        out: list[int] = []
+        for a, b, st in self.parts:
+            out.extend(range(a, n_frames if b is None else b, st))
+        if not out:
+            raise ValueError(
+                f"--times {self.text!r} selects no step of a {n_frames}-step recording"
+            )
+        return out
+
+
+def parse_times(text: str) -> TimeSpec:
+    return TimeSpec(text)
 
 
 def parse_params(items: list[str] | None) -> dict[str, Any]:

@@ -1,4 +1,8 @@
-"""``cfsr reconstruct``: images (and masks) from a spike file, through the streaming path."""
+"""``cfsr reconstruct``: images (and masks) from spike files, through the streaming path.
+
+One file or a folder of recordings; in this process, or split into chunks on a Dask cluster
+(``--cluster`` for a local one, ``--cluster tcp://HOST:8786`` for a running scheduler).
+"""
 
 from __future__ import annotations
 
@@ -21,7 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--times",
         "-t",
         type=parse_times,
-        help="output steps, e.g. 300,500 or 100:2000:100 (START:STOP:STRIDE)",
+        required=True,
+        help="output steps: 300,500 or ranges START:STOP:STRIDE (STOP exclusive; "
+        "empty STOP = end of recording, e.g. 0::100)",
     )
     p.add_argument(
         "--out",
@@ -29,7 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=Path("out"),
         help="output folder: tSTEP.npy (float32 rates, spikes/step, H x W, upright) "
-        "and tSTEP.png (8-bit preview); default ./out",
+        "and tSTEP.png (8-bit preview); for a folder input, one sub-folder per "
+        "recording; default ./out",
     )
     p.add_argument(
         "--param",
@@ -54,87 +61,133 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--video",
         type=Path,
         metavar="OUT.mp4",
-        help="render the --times range to a video (mp4) instead of/in addition to files",
+        help="also render the --times range of a single file to a video (mp4)",
     )
     p.add_argument("--fps", type=float, default=25.0, help="video frame rate (default 25)")
     p.add_argument("--no-files", action="store_true", help="with --video, skip the .npy/.png files")
+    p.add_argument(
+        "--cluster",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run chunks on Dask: a local cluster, or the scheduler at ADDRESS",
+    )
+    p.add_argument(
+        "--chunk-steps",
+        type=int,
+        default=40_000,
+        help="output steps per chunk task (default 40000 = 1 s of recording)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
+def _inputs(path: Path) -> list[Path]:
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".dat", ".npz"))
+        if not files:
+            raise ValueError(f"{path}: folder holds no .dat or .npz recordings")
+        return files
+    return [path]
+
+
+def _read_kwargs(args: argparse.Namespace) -> dict:
+    keys = ("width", "height", "head_cols", "flipud", "fliplr", "allow_partial")
+    return {k: getattr(args, k) for k in keys if getattr(args, k) not in (None, False)}
+
+
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-    from PIL import Image
     from tqdm import tqdm
 
-    from cfsr.display import auto_gain, to_display
+    from cfsr.batch import ChunkTask, plan_chunks, run_batch
     from cfsr.methods import get_method, resolve_params
-    from cfsr.offline import stream_reconstruct
 
-    rec = open_input(args)
-    if args.times is None:
-        raise ValueError("--times is required (e.g. --times 300,500 or --times 0:4000:100)")
     params = parse_params(args.param)
     m = get_method(args.method)
     resolve_params(m, params, args.preset)  # validate before any work
-    gain = args.gain if args.gain is not None else rec.gain
-    write_files = not (args.video and args.no_files)
-    if write_files:
-        args.out.mkdir(parents=True, exist_ok=True)
-    writer = None
-    if args.video:
-        import cv2
-
-        args.video.parent.mkdir(parents=True, exist_ok=True)
-        h, w = rec.layout.height, rec.layout.width
-        writer = cv2.VideoWriter(
-            str(args.video), cv2.VideoWriter_fourcc(*"mp4v"), args.fps, (w, h), False
-        )
-        if not writer.isOpened():
-            raise OSError(f"{args.video}: cannot open a video writer (mp4v)")
-        if gain is None:
-            # One gain for the whole video, so brightness does not flicker frame to frame.
-            first = next(
-                stream_reconstruct(
-                    rec, args.method, args.times[:1], params=params, preset=args.preset
+    src = Path(args.input)
+    files = _inputs(src)
+    if args.video and len(files) > 1:
+        raise ValueError("--video needs a single input file")
+    tasks = []
+    total = 0
+    for f in files:
+        args.input = str(f)
+        rec = open_input(args)  # validates every file up front
+        times = args.times.resolve(rec.n_frames)
+        bad = [t for t in times if not 0 <= t < rec.n_frames]
+        if bad:
+            raise ValueError(f"{f}: times {bad[:5]} outside the recording (0..{rec.n_frames - 1})")
+        if args.video:
+            _video(args, rec, m.name, times, params)
+            if args.no_files:
+                continue
+        out = args.out if not src.is_dir() else args.out / f.stem
+        total += len(set(times))
+        for group in plan_chunks(times, args.chunk_steps):
+            tasks.append(
+                ChunkTask(
+                    str(f),
+                    m.name,
+                    group,
+                    str(out),
+                    params,
+                    args.preset,
+                    args.masks,
+                    args.gain,
+                    _read_kwargs(args),
                 )
-            )[1]
-            gain = auto_gain(first.rate)
-    times = sorted(set(args.times))
+            )
     bar = tqdm(
-        total=len(times),
+        total=total,
         unit="frame",
-        desc=f"{m.name}",
+        desc=m.name,
         disable=args.quiet or None,
         file=sys.stderr,
         mininterval=0.5,
     )
-    n = 0
-    try:
-        for t, out in stream_reconstruct(
-            rec, args.method, times, params=params, preset=args.preset
-        ):
-            img8 = to_display(out.rate, gain)
-            if write_files:
-                np.save(args.out / f"t{t}.npy", out.rate.astype(np.float32))
-                Image.fromarray(img8).save(args.out / f"t{t}.png")
-                if args.masks:
-                    for name, mask in out.masks.items():
-                        np.save(args.out / f"t{t}_mask_{name}.npy", mask.astype(bool))
-                        Image.fromarray(mask.astype(np.uint8) * 255).save(
-                            args.out / f"t{t}_mask_{name}.png"
-                        )
-            if writer is not None:
-                writer.write(img8)
-            n += 1
-            bar.update()
-    finally:
-        bar.close()
-        if writer is not None:
-            writer.release()
+    with bar:
+        results = run_batch(tasks, cluster=args.cluster, progress=bar.update)
+    n = sum(r["frames"] for r in results)
     if args.masks and not m.masks:
         print(f"note: method {m.name} returns no masks", file=sys.stderr)
-    where = [str(args.out)] if write_files else []
+    where = "" if not tasks else f" to {args.out}"
+    on = f" on {len({r['worker_pid'] for r in results})} worker(s)" if args.cluster else ""
+    if n:
+        print(f"{n} frame(s) of {m.name} written{where}{on}")
     if args.video:
-        where.append(str(args.video))
-    print(f"{n} frame(s) of {m.name} written to {', '.join(where)}")
+        print(f"video written to {args.video}")
     return 0
+
+
+def _video(args: argparse.Namespace, rec, method: str, times: list[int], params: dict) -> None:
+    import cv2
+    from tqdm import tqdm
+
+    from cfsr.display import auto_gain, to_display
+    from cfsr.offline import stream_reconstruct
+
+    args.video.parent.mkdir(parents=True, exist_ok=True)
+    h, w = rec.layout.height, rec.layout.width
+    writer = cv2.VideoWriter(
+        str(args.video), cv2.VideoWriter_fourcc(*"mp4v"), args.fps, (w, h), False
+    )
+    if not writer.isOpened():
+        raise OSError(f"{args.video}: cannot open a video writer (mp4v)")
+    gain = args.gain if args.gain is not None else rec.gain
+    try:
+        with tqdm(
+            total=len(set(times)),
+            unit="frame",
+            desc=f"{method} video",
+            disable=args.quiet or None,
+            file=sys.stderr,
+            mininterval=0.5,
+        ) as bar:
+            for _, out in stream_reconstruct(rec, method, times, params=params, preset=args.preset):
+                if gain is None:
+                    # one gain for the whole video, so brightness does not flicker
+                    gain = auto_gain(out.rate)
+                writer.write(to_display(out.rate, gain))
+                bar.update()
+    finally:
+        writer.release()
