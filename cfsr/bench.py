@@ -1,0 +1,219 @@
+"""Benchmarks: run time against error over a parameter grid, and throughput against real time.
+
+Figures are ratios measured in the same run (to real time = 40,000 steps/s, and to display
+rate = 25 fps), never absolute timing asserts. The CLI front end is ``cfsr bench``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from cfsr.layout import STEP_RATE_HZ
+
+__all__ = [
+    "DISPLAY_FPS",
+    "FULL_GRID",
+    "QUICK_GRID",
+    "grid_specs",
+    "pareto_front",
+    "plot_pareto",
+    "method_fps",
+    "streaming_state_rtf",
+    "format_rows",
+]
+
+#: Display rate that "real time" means for reconstructed frames (frames per second).
+DISPLAY_FPS = 25.0
+
+# Method specs ("name" or "name:k=v,k=v") of the parameter grid; names not registered in this
+# build are skipped (and reported) rather than failing the run.
+FULL_GRID = (
+    "tfi",
+    "tfi:max_isi=100",
+    *(f"tfp:window={w},mode={m}" for w in (16, 32, 64, 160) for m in ("centred", "trailing")),
+    "tfa",
+    "tfstp",
+    "snm",
+    "csr",
+    "csr:preset=simulated",
+    "cfsr",
+    "cfsr:preset=simulated",
+)
+QUICK_GRID = ("tfi", "tfp:window=32,mode=centred", "tfp:window=160", "csr", "cfsr")
+
+
+def grid_specs(grid: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Split a grid into (runnable specs, skipped specs whose method is not registered)."""
+    from cfsr.methods import methods
+
+    known = set(methods())
+    run, skipped = [], []
+    for spec in grid:
+        (run if spec.split(":", 1)[0] in known else skipped).append(spec)
+    return run, skipped
+
+
+def pareto_front(
+    rows: Sequence[dict[str, Any]], *, cost: str = "ms_per_frame", score: str = "psnr_all"
+) -> list[dict[str, Any]]:
+    """Rows not dominated by another (lower cost and higher score), sorted by cost."""
+    pts = [r for r in rows if _finite(r.get(cost)) and _finite(r.get(score))]
+    pts.sort(key=lambda r: (r[cost], -r[score]))
+    front, best = [], -math.inf
+    for r in pts:
+        if r[score] > best:
+            front.append(r)
+            best = r[score]
+    return front
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def plot_pareto(
+    rows: Sequence[dict[str, Any]],
+    path: str,
+    *,
+    cost: str = "ms_per_frame",
+    score: str = "psnr_all",
+    title: str = "run time against error",
+) -> str:
+    """Scatter of cost (log ms per frame) against score per method, one panel per scene."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in rows if _finite(r.get(score))})
+    if not scenes:
+        raise ValueError(f"no rows with a finite {score} to plot")
+    ncol = min(3, len(scenes))
+    nrow = math.ceil(len(scenes) / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 4.0 * nrow), squeeze=False)
+    for ax, scene in zip(axes.ravel(), scenes, strict=False):
+        sub = [r for r in rows if r["scene"] == scene and _finite(r.get(score))]
+        names = sorted({r["name"] for r in sub})
+        cmap = plt.get_cmap("tab10")
+        for i, name in enumerate(names):
+            pts = [r for r in sub if r["name"] == name]
+            ax.scatter(
+                [r[cost] for r in pts],
+                [r[score] for r in pts],
+                color=cmap(i % 10),
+                label=name,
+                s=30,
+            )
+            for r in pts:
+                label = r["method"].partition(":")[2]
+                if label:
+                    ax.annotate(label, (r[cost], r[score]), fontsize=6, alpha=0.7)
+        front = pareto_front(sub, cost=cost, score=score)
+        ax.plot(
+            [r[cost] for r in front], [r[score] for r in front], "k--", lw=0.8, label="Pareto front"
+        )
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per output frame (log)")
+        ax.set_ylabel(score.replace("_", " ") + " (dB)" if "psnr" in score else score)
+        ax.set_title(scene)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(scenes) :]:
+        ax.axis("off")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _timeit(fn: Callable[[], Any], *, min_time: float = 0.5, max_reps: int = 50) -> float:
+    """Median seconds per call after one warm-up call (JIT compile excluded)."""
+    fn()
+    times = []
+    t_end = time.perf_counter() + min_time
+    while len(times) < max_reps and (len(times) < 3 or time.perf_counter() < t_end):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def method_fps(
+    packed: np.ndarray,
+    layout,
+    method: str,
+    *,
+    params: dict[str, Any] | None = None,
+    preset: str | None = None,
+    min_time: float = 0.5,
+) -> dict[str, float]:
+    """Output frames per second of ``method`` through the streaming reconstructor.
+
+    ``packed`` holds enough frames for the method's window; the newest computable step is
+    reconstructed repeatedly, as the live worker does.
+    """
+    from cfsr.streaming import StreamingReconstructor
+
+    sr = StreamingReconstructor(method, layout, params=params, preset=preset, slack=len(packed))
+    sr.push(packed, 0)
+    t = sr.latest_step()
+    if t is None:
+        raise ValueError(f"{len(packed)} frames are too few for {method}'s window")
+    sec = _timeit(lambda: sr.compute(t), min_time=min_time)
+    fps = 1.0 / sec
+    return {"ms_per_frame": sec * 1e3, "fps": fps, "display_rtf": fps / DISPLAY_FPS}
+
+
+def streaming_state_rtf(
+    packed: np.ndarray, layout, *, block: int = 4096, min_time: float = 1.0
+) -> float:
+    """Steps per second of :class:`~cfsr.pixelstate.PixelState` over packed blocks / 40,000."""
+    from cfsr.pixelstate import PixelState
+
+    ps = PixelState(layout)
+    n = len(packed)
+    blocks = [packed[a : a + block] for a in range(0, n - block + 1, block)] or [packed]
+
+    def run() -> None:
+        ps.reset()
+        for i, b in enumerate(blocks):
+            ps.update(b, i * block)
+
+    sec = _timeit(run, min_time=min_time, max_reps=20)
+    return sum(len(b) for b in blocks) / sec / STEP_RATE_HZ
+
+
+def format_rows(rows: Sequence[dict[str, Any]], columns: Sequence[tuple[str, str, str]]) -> str:
+    """A plain-text table; ``columns`` are (key, header, format)."""
+    head = [h for _, h, _ in columns]
+    body = []
+    for r in rows:
+        line = []
+        for key, _, fmt in columns:
+            v = r.get(key)
+            line.append(
+                "-"
+                if v is None or (isinstance(v, float) and not math.isfinite(v))
+                else format(v, fmt)
+                if fmt
+                else str(v)
+            )
+        body.append(line)
+    widths = [
+        max(len(h), *(len(b[i]) for b in body)) if body else len(h) for i, h in enumerate(head)
+    ]
+    out = ["  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True))]
+    out.append("  ".join("-" * w for w in widths))
+    out += [
+        "  ".join(
+            c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(b, widths, strict=True))
+        )
+        for b in body
+    ]
+    return "\n".join(out)

@@ -1,0 +1,404 @@
+"""``cfsr bench``: run time against error, throughput against real time, and the
+skip-what-the-scene-doesn't-need sweep.
+
+Every figure is a ratio measured in this run: to real time (40,000 steps/s), to display rate
+(25 fps), or to a baseline timed in the same process. Nothing here asserts timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[2]
+
+GOALS = {
+    "acquisition": ">= 1x real time, zero loss",
+    "streaming_state": ">= 1x real time",
+    "tfp": ">= 100 fps",
+    "csr": ">= 100 fps",
+    "cfsr": ">= 25 fps (display rate)",
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--quick", action="store_true", help="small grid and scenes: a smoke run under two minutes"
+    )
+    p.add_argument(
+        "--throughput",
+        action="store_true",
+        help="measure throughput (acquisition, streaming state, fps per method) "
+        "instead of the accuracy grid",
+    )
+    p.add_argument(
+        "--sweep",
+        action="store_true",
+        help="cost and error of the adaptive pipeline against the always-full one "
+        "as the dynamic area grows (static, ~10%%, ~30%%, full motion)",
+    )
+    p.add_argument(
+        "--methods", help="override the grid: comma-separated specs, e.g. tfi,tfp:window=32,cfsr"
+    )
+    p.add_argument("--scenes", help="simulated scenes (default: all; quick: disk,car)")
+    p.add_argument("--steps", type=int, help="steps simulated per scene")
+    p.add_argument(
+        "--data",
+        type=Path,
+        help="folder with synthetic/reds_base and real/uhsr.npz (default: "
+        "$CFSR_SHARED_DATA or ../shared/data beside the repository, if present)",
+    )
+    p.add_argument("--no-data", action="store_true", help="skip REDS and uhsr even if present")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("bench-out"),
+        help="folder for accuracy.json, pareto.png, throughput.json, sweep.json",
+    )
+    p.add_argument(
+        "--json",
+        type=Path,
+        metavar="PATH",
+        help="also write this run's JSON here (throughput: {realtime_factor, fps})",
+    )
+    p.add_argument(
+        "--cluster",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run the accuracy grid's scenes on Dask (local cluster or ADDRESS)",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def _machine() -> dict[str, Any]:
+    import numba
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "numba_threads": numba.get_num_threads(),
+        "python": platform.python_version(),
+    }
+
+
+def _data_dir(args: argparse.Namespace) -> Path | None:
+    if args.no_data:
+        return None
+    cands = (
+        [args.data]
+        if args.data
+        else [
+            Path(os.environ["CFSR_SHARED_DATA"]) if os.environ.get("CFSR_SHARED_DATA") else None,
+            REPO.parent / "shared" / "data",
+        ]
+    )
+    for c in cands:
+        if c is not None and c.is_dir():
+            return c
+    if args.data:
+        raise ValueError(f"{args.data}: no such data folder")
+    return None
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2, default=float))
+
+
+# --------------------------------------------------------------------------- accuracy grid
+
+
+def _scene_rows(job: dict[str, Any]) -> list[dict[str, Any]]:
+    """One scene's rows (runs in-process or on a Dask worker)."""
+    from cfsr.evaluation import evaluate
+
+    return evaluate(
+        job["specs"],
+        [job["scene"]],
+        steps=job["steps"],
+        times=job["times"],
+        height=job["height"],
+        width=job["width"],
+        seed=0,
+    )
+
+
+def _warm_up(specs: list[str]) -> None:
+    """Compile every kernel once on a tiny scene so timings exclude JIT compilation."""
+    from cfsr.evaluation import evaluate
+
+    evaluate(specs, ["disk"], steps=700, times=[600], height=48, width=64)
+
+
+def _accuracy(args: argparse.Namespace, bar) -> dict[str, Any]:
+    from cfsr.bench import FULL_GRID, QUICK_GRID, grid_specs
+    from cfsr.evaluation import evaluate_reds, find_reds_pairs, split_method_specs
+    from cfsr.simulate import SCENES
+
+    grid = (
+        split_method_specs(args.methods)
+        if args.methods
+        else (QUICK_GRID if args.quick else FULL_GRID)
+    )
+    specs, skipped = grid_specs(grid)
+    if not specs:
+        raise ValueError(f"none of the methods {list(grid)} is available")
+    scenes = (
+        [s.strip() for s in args.scenes.split(",")]
+        if args.scenes
+        else (["disk", "car"] if args.quick else list(SCENES))
+    )
+    steps = args.steps or (1000 if args.quick else 2000)
+    times = [steps // 2] if args.quick else [steps // 2 - 200, steps // 2, steps // 2 + 200]
+    bar.set_description("warming up")
+    _warm_up(specs)
+    jobs = [
+        {"specs": specs, "scene": s, "steps": steps, "times": times, "height": 250, "width": 400}
+        for s in scenes
+    ]
+    rows: list[dict[str, Any]] = []
+    bar.reset(total=len(jobs) + 2)
+    bar.set_description("scenes")
+    if args.cluster:
+        from dask.distributed import Client, LocalCluster, as_completed
+
+        local = (
+            LocalCluster(
+                n_workers=min(4, os.cpu_count() or 1), threads_per_worker=1, dashboard_address=None
+            )
+            if args.cluster == "local"
+            else None
+        )
+        client = Client(local if local else args.cluster)
+        try:
+            for fut in as_completed([client.submit(_scene_rows, j, pure=False) for j in jobs]):
+                rows.extend(fut.result())
+                bar.update()
+        finally:
+            client.close()
+            if local:
+                local.close()
+    else:
+        for j in jobs:
+            rows.extend(_scene_rows(j))
+            bar.update()
+    data = _data_dir(args)
+    noref: list[dict[str, Any]] = []
+    if data is not None:
+        reds = data / "synthetic" / "reds_base"
+        if reds.is_dir() and find_reds_pairs(reds):
+            bar.set_description("REDS")
+            for r in evaluate_reds(reds, specs):
+                r["scene"] = "reds:" + str(r.get("scene", r.get("file", "")))
+                rows.append(r)
+        bar.update()
+        uhsr = data / "real" / "uhsr.npz"
+        if uhsr.exists():
+            bar.set_description("uhsr")
+            noref = _uhsr_rows(uhsr, specs)
+        bar.update()
+    for r in rows:
+        ms = r.get("ms_per_frame")
+        r["display_rtf"] = (1000.0 / ms / 25.0) if ms else None
+    return {"rows": rows, "noref": noref, "skipped": skipped, "steps": steps, "times": times}
+
+
+def _uhsr_rows(path: Path, specs: list[str]) -> list[dict[str, Any]]:
+    """STD and CPBD (no reference) of every method on the real uhsr capture, as in Table 1."""
+    import numpy as np
+
+    from cfsr.api import reconstruct_outputs
+    from cfsr.datfile import read_npz
+    from cfsr.display import to_display
+    from cfsr.evaluation import parse_method_spec
+    from cfsr.metrics import cpbd, std_metric
+
+    rec = read_npz(path)
+    t = rec.n_frames // 2
+    rows = []
+    for s in specs:
+        spec = parse_method_spec(s)
+        t0 = time.perf_counter()
+        out = reconstruct_outputs(rec, spec.name, [t], preset=spec.preset, params=spec.params)[0]
+        dt = time.perf_counter() - t0
+        img = to_display(out.rate, float(np.percentile(out.rate, 99.5)) or 1.0)
+        rows.append(
+            {
+                "method": spec.label,
+                "name": spec.name,
+                "scene": "uhsr (real)",
+                "std": std_metric(img),
+                "cpbd": cpbd(img),
+                "ms_per_frame": dt * 1e3,
+            }
+        )
+    return rows
+
+
+# --------------------------------------------------------------------------- throughput
+
+
+def _demo_packed(steps: int, height: int = 250, width: int = 400):
+    from cfsr._bits import pack_frames
+    from cfsr.layout import Layout
+    from cfsr.simulate import simulate
+
+    sim = simulate("disk", steps, seed=0, height=height, width=width)
+    return pack_frames(sim.spikes), Layout(width, height)
+
+
+def _acquisition(args: argparse.Namespace) -> dict[str, Any]:
+    """Acquisition into the ring, from the service layer (emulated USB camera when possible)."""
+    try:
+        from service.benchmarks import acquisition_throughput
+    except ImportError as exc:  # pragma: no cover - reported, not hidden
+        return {"error": f"acquisition benchmark unavailable: {exc}"}
+    return acquisition_throughput(seconds=2.0 if args.quick else 5.0)
+
+
+def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
+    from cfsr.bench import method_fps, streaming_state_rtf
+    from cfsr.methods import methods
+
+    steps = 2048 if args.quick else 4096
+    bar.set_description("simulating")
+    packed, layout = _demo_packed(steps)
+    bar.reset(total=2 + len(methods()))
+    bar.set_description("streaming state")
+    rtf = {"streaming_state": streaming_state_rtf(packed, layout)}
+    bar.update()
+    bar.set_description("acquisition")
+    acq = _acquisition(args)
+    rtf["acquisition"] = acq.get("realtime_factor")
+    bar.update()
+    fps: dict[str, float] = {}
+    detail: dict[str, Any] = {}
+    for name in methods():
+        bar.set_description(f"fps {name}")
+        try:
+            r = method_fps(packed, layout, name, min_time=0.3 if args.quick else 1.0)
+        except ValueError as exc:
+            detail[name] = {"error": str(exc)}
+        else:
+            fps[name] = r["fps"]
+            detail[name] = r
+        bar.update()
+    return {
+        "realtime_factor": rtf,
+        "fps": fps,
+        "acquisition": acq,
+        "methods": detail,
+        "goals": GOALS,
+        "frame": f"{layout.width} x {layout.height}",
+        "machine": _machine(),
+    }
+
+
+def _print_throughput(res: dict[str, Any]) -> None:
+    rtf, fps = res["realtime_factor"], res["fps"]
+    print(
+        f"throughput at {res['frame']} on {res['machine']['cores']} cores ({res['machine']['cpu']})"
+    )
+    print(f"  {'figure':28s} {'measured':>12s}   goal")
+    for k in ("acquisition", "streaming_state"):
+        v = rtf.get(k)
+        shown = "n/a" if v is None else f"{v:.2f}x RT"
+        print(f"  {k + ' (x real time)':28s} {shown:>12s}   {GOALS[k]}")
+    acq = res.get("acquisition", {})
+    if acq.get("source"):
+        print(f"    acquisition via {acq['source']}, lost {acq.get('lost_frames', '?')} frames")
+    if acq.get("error"):
+        print(f"    {acq['error']}")
+    for k, v in fps.items():
+        print(f"  {k + ' (fps, 400 x 250)':28s} {v:12.1f}   {GOALS.get(k, '')}")
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from cfsr.bench import format_rows, plot_pareto
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    with tqdm(total=1, disable=args.quiet or None, file=sys.stderr, mininterval=0.5) as bar:
+        if args.throughput:
+            res = _throughput(args, bar)
+            name = "throughput.json"
+        elif args.sweep:
+            from service.commands._sweep import sweep
+
+            res = sweep(args, bar)
+            name = "sweep.json"
+        else:
+            res = _accuracy(args, bar)
+            name = "accuracy.json"
+    res["seconds"] = time.perf_counter() - t_start
+    res.setdefault("machine", _machine())
+    _write_json(args.out / name, res)
+    if args.json:
+        _write_json(args.json, res)
+    if args.throughput:
+        _print_throughput(res)
+    elif args.sweep:
+        from service.commands._sweep import print_sweep
+
+        print_sweep(res)
+    else:
+        cols = [
+            ("method", "method", ""),
+            ("scene", "scene", ""),
+            ("ms_per_frame", "ms/frame", ".1f"),
+            ("display_rtf", "x RT@25fps", ".2f"),
+            ("psnr_all", "PSNR all", ".2f"),
+            ("psnr_motion", "PSNR motion", ".2f"),
+            ("ssim", "SSIM", ".3f"),
+            ("iou_coarse", "IoU coarse", ".2f"),
+            ("iou_fine", "IoU fine", ".2f"),
+        ]
+        print(format_rows(res["rows"], cols))
+        if res["noref"]:
+            print()
+            print(
+                format_rows(
+                    res["noref"],
+                    [
+                        ("method", "method", ""),
+                        ("scene", "scene", ""),
+                        ("std", "STD", ".2f"),
+                        ("cpbd", "CPBD", ".3f"),
+                        ("ms_per_frame", "ms/frame", ".1f"),
+                    ],
+                )
+            )
+            print("CPBD rewards noise: read it beside STD and the PSNR table, never alone.")
+        if res["skipped"]:
+            print(f"skipped (not in this build): {', '.join(res['skipped'])}")
+        png = plot_pareto(
+            [r for r in res["rows"] if not r["scene"].startswith("reds:")],
+            str(args.out / "pareto.png"),
+        )
+        print(f"plot: {png}")
+    print(
+        f"JSON: {args.out / name}"
+        + (f" and {args.json}" if args.json else "")
+        + f"  ({res['seconds']:.0f} s)"
+    )
+    return 0
