@@ -41,7 +41,7 @@ def reconstruct_outputs(
     for t in check_times(times, rec.n_frames):
         a = max(0, t - before)
         b = min(rec.n_frames, t + after + 1)
-        outs.append(m.compute(rec.frames(a, b), t - a, a, p))
+        outs.append(m.run_window(rec, a, b, t, p))
     return outs
 
 

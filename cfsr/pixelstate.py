@@ -1,10 +1,11 @@
 """Per-pixel streaming state computed straight from packed frames (no unpacking).
 
 The live path sees 40,000 frames/s = 500 MB/s packed. Unpacking every frame to bytes would
-move 4 GB/s; instead this module updates, per pixel, the spike count, the step of the last
-spike and the last inter-spike interval by walking the set bits of each packed byte. From that
-state TFI (rate = 1 / ISI, paper Eq. 3, using the latest complete interval) and running counts
-for TFP (Eq. 4) are available at any moment at the cost of one pass over the pixels.
+move 4 GB/s; instead this module keeps, per pixel, the spike count (SWAR counting of packed
+bytes, :func:`cfsr._packed.count_packed`), the step of the last spike and the last inter-spike
+interval (a backward scan of each block that stops as soon as every pixel of a cache line has
+fired twice). From that state TFI (rate = 1 / ISI, paper Eq. 3, on the latest complete
+interval) and mean rates (Eq. 4 over the whole stream) are available at any moment.
 """
 
 from __future__ import annotations
@@ -12,47 +13,21 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cfsr._packed import CHUNK, count_packed, stored_to_image
 from cfsr.layout import Layout
 
 __all__ = ["PixelState"]
 
 
-# _LANES[v] holds bit k of byte v in byte-lane k of a uint64, so summing _LANES over frames
-# counts 8 pixels at once (SWAR); lanes are spilled before they can overflow at 255.
-_LANES = np.array(
-    [sum(((v >> k) & 1) << (8 * k) for k in range(8)) for v in range(256)], dtype=np.uint64
-)
-_CHUNK = 64  # byte columns per task: one cache line of every frame
-
-
 @njit(parallel=True, cache=True)
-def _update(packed, start, lanes, count, last, isi, t1, t2):  # pragma: no cover - numba
+def _last_two(packed, start, last, isi, t1, t2):  # pragma: no cover - numba
     n, nb = packed.shape
-    nchunks = (nb + _CHUNK - 1) // _CHUNK
+    nchunks = (nb + CHUNK - 1) // CHUNK
     for c in prange(nchunks):
-        b0 = c * _CHUNK
-        b1 = min(nb, b0 + _CHUNK)
-        m = b1 - b0
-        # counts: SWAR over time, spill every 255 frames
-        acc = np.empty(_CHUNK, np.uint64)
-        t = 0
-        while t < n:
-            t_end = min(n, t + 255)
-            for i in range(m):
-                acc[i] = 0
-            for tt in range(t, t_end):
-                row = packed[tt]
-                for i in range(m):
-                    acc[i] += lanes[row[b0 + i]]
-            for i in range(m):
-                a = acc[i]
-                base = (b0 + i) * 8
-                for k in range(8):
-                    count[base + k] += (a >> np.uint64(8 * k)) & np.uint64(0xFF)
-            t = t_end
-        # last two spikes per pixel: scan backwards until every pixel of the chunk fired twice
-        seen1 = np.zeros(_CHUNK, np.uint8)
-        seen2 = np.zeros(_CHUNK, np.uint8)
+        b0 = c * CHUNK
+        m = min(nb, b0 + CHUNK) - b0
+        seen1 = np.zeros(CHUNK, np.uint8)  # pixels seen once, scanning back from the end
+        seen2 = np.zeros(CHUNK, np.uint8)  # pixels seen twice
         done = 0
         tt = n - 1
         while tt >= 0 and done < m:
@@ -76,9 +51,8 @@ def _update(packed, start, lanes, count, last, isi, t1, t2):  # pragma: no cover
         for i in range(m):
             if seen1[i] == 0:
                 continue
-            base = (b0 + i) * 8
             for k in range(8):
-                p = base + k
+                p = (b0 + i) * 8 + k
                 if not (seen1[i] >> k) & 1:
                     continue
                 s1 = start + t1[p]
@@ -87,7 +61,7 @@ def _update(packed, start, lanes, count, last, isi, t1, t2):  # pragma: no cover
                 elif last[p] >= 0:
                     isi[p] = s1 - last[p]
                 last[p] = s1
-    return count
+    return last
 
 
 class PixelState:
@@ -98,14 +72,16 @@ class PixelState:
     layout : Layout
         Layout of the packed frames.
 
-    Attributes (in stored pixel order; use :meth:`image` to get an upright ``(H, W)`` view)
+    Attributes
     ----------
-    count : int64
+    count : int64, stored pixel order
         Spikes since the last :meth:`reset`.
-    last : int64
+    last : int64, stored pixel order
         Step of each pixel's latest spike (-1 if none yet).
-    isi : int64
+    isi : int64, stored pixel order
         Latest complete inter-spike interval in steps (0 if fewer than two spikes).
+
+    Use :meth:`image` to view any of them as an upright ``(H, W)`` image.
     """
 
     def __init__(self, layout: Layout) -> None:
@@ -130,27 +106,19 @@ class PixelState:
             raise ValueError(
                 f"packed block must be (n, {self.layout.frame_bytes}), got {packed.shape}"
             )
-        _update(
-            packed, np.int64(start), _LANES, self.count, self.last, self.isi, self._t1, self._t2
-        )
+        count_packed(packed, out=self.count)
+        _last_two(packed, np.int64(start), self.last, self.isi, self._t1, self._t2)
         self.steps += packed.shape[0]
         self.next_step = int(start) + packed.shape[0]
 
     def image(self, flat: np.ndarray) -> np.ndarray:
         """Stored-order per-pixel values -> upright ``(H, W)`` (head columns dropped)."""
-        lay = self.layout
-        img = (
-            flat.reshape(lay.height, lay.stored_width)[:, : lay.width]
-            if not lay.fliplr
-            else (flat.reshape(lay.height, lay.stored_width)[:, ::-1][:, : lay.width])
-        )
-        return img[::-1] if lay.flipud else img
+        return stored_to_image(flat, self.layout)
 
     def tfi_rate(self) -> np.ndarray:
         """1 / latest ISI (spikes/step), float32 upright; 0 where no interval is known yet."""
         isi = self.image(self.isi)
-        with np.errstate(divide="ignore"):
-            r = np.where(isi > 0, 1.0 / np.maximum(isi, 1), 0.0)
+        r = np.where(isi > 0, 1.0 / np.maximum(isi, 1), 0.0)
         return r.astype(np.float32)
 
     def mean_rate(self) -> np.ndarray:

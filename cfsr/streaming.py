@@ -183,8 +183,12 @@ class StreamingReconstructor:
             )
         a = max(self._first, t - self.before)
         b = min(self._next, t + self.after + 1)
+        return self.method.run_window(self, a, b, t, self.params)
+
+    def frames(self, a: int, b: int) -> np.ndarray:
+        """Buffered frames of steps ``[a, b)`` unpacked to upright ``(b - a, H, W)`` uint8."""
         lay = self.layout
-        window = unpack_frames(
+        return unpack_frames(
             self.packed(a, b),
             lay.height,
             lay.width,
@@ -192,7 +196,6 @@ class StreamingReconstructor:
             flipud=lay.flipud,
             fliplr=lay.fliplr,
         )
-        return self.method.compute(window, t - a, a, self.params)
 
     def latest_step(self) -> int | None:
         """Newest step whose full window has arrived, or None."""

@@ -21,7 +21,11 @@ def test_state_matches_reference(block, layout):
     fr = (rng.random((t, h, w)) < rate).astype(np.uint8)
     stored = fr
     if layout.head_cols:
-        stored = np.concatenate([fr, np.ones((t, h, layout.head_cols), np.uint8)], axis=2)
+        # head columns sit at the right of the stored row; with fliplr the image is mirrored
+        # within the first `width` columns, so pad on the side that mirroring moves right
+        head = np.ones((t, h, layout.head_cols), np.uint8)
+        parts = [head, fr] if layout.fliplr else [fr, head]
+        stored = np.concatenate(parts, axis=2)
     pk = pack_frames(stored, flipud=layout.flipud, fliplr=layout.fliplr)
     base = 2**35  # absolute step indices past 2^32
     ps = PixelState(layout)

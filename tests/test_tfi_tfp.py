@@ -160,3 +160,33 @@ def test_layout_of_pushed_blocks_is_checked():
     sr = StreamingReconstructor("tfp", Layout(16, 4))
     with pytest.raises(ValueError, match=r"\(n, 8\)"):
         sr.push(np.zeros((3, 9), np.uint8), 0)
+
+
+@pytest.mark.parametrize(
+    "layout",
+    [
+        Layout(16, 6),
+        Layout(16, 6, head_cols=8),
+        Layout(16, 6, fliplr=True, head_cols=8),
+        Layout(16, 6, flipud=False),
+    ],
+)
+def test_packed_paths_equal_unpacked_kernels(layout):
+    from cfsr._bits import pack_frames
+    from cfsr.methods.tfi import tfi_rate, tfi_rate_packed
+    from cfsr.methods.tfp import tfp_rate, tfp_rate_packed
+
+    s = rand_spikes(t=300, h=layout.height, w=layout.width, seed=5)
+    head = np.ones((300, layout.height, layout.head_cols), np.uint8)
+    stored = np.concatenate([head, s] if layout.fliplr else [s, head], axis=2)
+    pk = pack_frames(stored, flipud=layout.flipud, fliplr=layout.fliplr)
+    for c in (0, 5, 150, 299):
+        for m in (3, 40, 400):
+            np.testing.assert_array_equal(
+                tfi_rate_packed(pk, layout, c, max_isi=m), tfi_rate(s, c, max_isi=m)
+            )
+        for w, mode in ((1, "trailing"), (33, "centred"), (160, "trailing")):
+            np.testing.assert_array_equal(
+                tfp_rate_packed(pk, layout, c, window=w, mode=mode),
+                tfp_rate(s, c, window=w, mode=mode),
+            )

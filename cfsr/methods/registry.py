@@ -72,6 +72,7 @@ class Output:
 
 
 ComputeFn = Callable[[np.ndarray, int, int, Mapping[str, Any]], Output]
+PackedComputeFn = Callable[[np.ndarray, Any, int, int, Mapping[str, Any]], Output]
 WindowFn = Callable[[Mapping[str, Any]], tuple[int, int]]
 
 
@@ -97,6 +98,10 @@ class Method:
         Named parameter sets, e.g. ``{"paper": {...}}`` for the paper's real-data defaults.
     reference : str
         Paper equation or publication implemented.
+    compute_packed : callable, optional
+        ``(packed_window, layout, center, start_step, params) -> Output``: the same result as
+        ``compute`` computed straight from packed frames (no unpacking). When present, the
+        library and the streaming reconstructor use it; tests check both agree exactly.
     """
 
     name: str
@@ -107,6 +112,18 @@ class Method:
     masks: tuple[str, ...] = ()
     presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     reference: str = ""
+    compute_packed: PackedComputeFn | None = None
+
+    def run_window(
+        self, recording_like: Any, a: int, b: int, t: int, params: Mapping[str, Any]
+    ) -> Output:
+        """Compute step ``t`` from frames ``[a, b)`` of anything with ``packed(a, b)``,
+        ``frames(a, b)`` and ``layout`` (a SpikeRecording or the streaming buffer)."""
+        if self.compute_packed is not None:
+            return self.compute_packed(
+                recording_like.packed(a, b), recording_like.layout, t - a, a, params
+            )
+        return self.compute(recording_like.frames(a, b), t - a, a, params)
 
     def describe(self) -> dict[str, Any]:
         return {

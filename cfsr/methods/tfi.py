@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr._packed import isi_packed, stored_to_image
 from cfsr.methods.registry import Method, Output, Param, register
 
-__all__ = ["tfi_rate", "isi_at"]
+__all__ = ["tfi_rate", "isi_at", "tfi_rates"]
 
 
 @njit(cache=True, inline="always")
@@ -104,8 +105,92 @@ def tfi_rate(spikes: np.ndarray, center: int, *, max_isi: int = 400) -> np.ndarr
     return (1.0 / isi_at(spikes, center, max_isi)).astype(np.float32)
 
 
+@njit(parallel=True, cache=True)
+def _isi_multi_kernel(spikes, centers, m, lo, hi, out):  # pragma: no cover - numba
+    """:func:`_isi_one` at every index of ``centers`` from one scan per pixel.
+
+    Each pixel's spike times in ``[lo, hi)`` are gathered once (row slab, contiguous x), then
+    every center gets exactly the interval, bounds and open-end rule of :func:`_isi_one` with
+    its own search range ``[max(0, c - m), min(n, c + m + 1))``.
+    """
+    n, h, w = spikes.shape
+    length = hi - lo
+    kc = centers.shape[0]
+    for y in prange(h):
+        slab = np.empty((length, w), np.uint8)
+        for t in range(length):
+            for x in range(w):
+                slab[t, x] = spikes[lo + t, y, x]
+        times = np.empty(length + 1, np.int64)
+        for x in range(w):
+            ns = 0
+            for t in range(length):
+                if slab[t, x]:
+                    times[ns] = lo + t
+                    ns += 1
+            for k in range(kc):
+                c = centers[k]
+                a = max(0, c - m)
+                b = min(n, c + m + 1)
+                # ip: last spike <= c (index into times), in = first spike > c
+                ip = np.searchsorted(times[:ns], c, side="right") - 1
+                i_n = ip + 1
+                p_ok = ip >= 0 and times[ip] >= a
+                n_ok = i_n < ns and times[i_n] < b
+                if p_ok and n_ok:
+                    out[k, y, x] = times[i_n] - times[ip]
+                elif p_ok:
+                    bound = b - times[ip]
+                    if ip >= 1 and times[ip - 1] >= a:
+                        out[k, y, x] = max(bound, times[ip] - times[ip - 1])
+                    else:
+                        out[k, y, x] = bound
+                elif n_ok:
+                    bound = times[i_n] - a + 1
+                    if i_n + 1 < ns and times[i_n + 1] < b:
+                        out[k, y, x] = max(bound, times[i_n + 1] - times[i_n])
+                    else:
+                        out[k, y, x] = bound
+                else:
+                    out[k, y, x] = b - a + 1
+    return out
+
+
+def tfi_rates(spikes: np.ndarray, centers, *, max_isi: int = 400) -> np.ndarray:
+    """:func:`tfi_rate` at several indices of one window, float32 ``(len(centers), H, W)``.
+
+    Identical numbers to calling :func:`tfi_rate` per center, from one scan of each pixel's
+    spikes (the PatchMatch stage of CFSR needs 33 TFI frames of the same window).
+    """
+    n, h, w = spikes.shape
+    cs = np.atleast_1d(np.asarray(centers, dtype=np.int64))
+    if cs.size and (cs.min() < 0 or cs.max() >= n):
+        raise ValueError(f"centers {cs.tolist()} outside window of {n} steps")
+    out = np.empty((cs.size, h, w), np.int32)
+    if cs.size == 0:
+        return out.astype(np.float32)
+    lo = max(0, int(cs.min()) - max_isi)
+    hi = min(n, int(cs.max()) + max_isi + 1)
+    _isi_multi_kernel(np.ascontiguousarray(spikes, dtype=np.uint8), cs, int(max_isi), lo, hi, out)
+    return (1.0 / out).astype(np.float32)
+
+
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
     return Output(tfi_rate(window, center, max_isi=p["max_isi"]))
+
+
+def tfi_rate_packed(packed: np.ndarray, layout, center: int, *, max_isi: int = 400) -> np.ndarray:
+    """:func:`tfi_rate` computed from packed frames ``(n, frame_bytes)`` without unpacking."""
+    n = packed.shape[0]
+    if not 0 <= center < n:
+        raise ValueError(f"center {center} outside window of {n} steps")
+    lo, hi = max(0, center - max_isi), min(n, center + max_isi + 1)
+    isi = stored_to_image(isi_packed(packed, center, lo, hi), layout)
+    return (1.0 / isi).astype(np.float32)
+
+
+def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
+    return Output(tfi_rate_packed(packed, layout, center, max_isi=p["max_isi"]))
 
 
 register(
@@ -117,6 +202,7 @@ register(
         },
         window=lambda p: (p["max_isi"], p["max_isi"]),
         compute=_compute,
+        compute_packed=_compute_packed,
         reference="CFSR paper Eq. 3 (Zhu et al., TFI)",
     )
 )

@@ -8,9 +8,10 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr._packed import count_packed, stored_to_image
 from cfsr.methods.registry import Method, Output, Param, register
 
-__all__ = ["tfp_rate", "tfp_span", "count_spikes"]
+__all__ = ["tfp_rate", "tfp_rate_packed", "tfp_span", "count_spikes"]
 
 
 @njit(parallel=True, cache=True)
@@ -75,6 +76,21 @@ def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) 
     return Output(tfp_rate(window, center, window=p["window"], mode=p["mode"]))
 
 
+def tfp_rate_packed(
+    packed: np.ndarray, layout, center: int, *, window: int = 160, mode: str = "trailing"
+) -> np.ndarray:
+    """:func:`tfp_rate` computed from packed frames ``(n, frame_bytes)`` without unpacking."""
+    if window < 1:
+        raise ValueError(f"window must be >= 1 step, got {window}")
+    a, b = tfp_span(center, packed.shape[0], window, mode)
+    counts = stored_to_image(count_packed(packed, a, b), layout).astype(np.int32)
+    return (counts / np.float32(max(1, b - a))).astype(np.float32)
+
+
+def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
+    return Output(tfp_rate_packed(packed, layout, center, window=p["window"], mode=p["mode"]))
+
+
 register(
     Method(
         name="tfp",
@@ -90,6 +106,7 @@ register(
         },
         window=_window,
         compute=_compute,
+        compute_packed=_compute_packed,
         presets={"paper": {"window": 160}, "simulated": {"window": 30}},
         reference="CFSR paper Eq. 4 (Zhu et al., TFP)",
     )
