@@ -1,0 +1,275 @@
+"""Our USB wire protocol for spike cameras (specified in ``docs/protocol.md``).
+
+Pure functions and constants only: the driver (:mod:`driver.usb`) and the camera emulator
+(:mod:`replay.camera_model`) both use them, so they cannot disagree.
+
+A stream is a sequence of fixed-size *blocks* on bulk IN endpoint 0x81. Each block is one
+1024-byte header packet followed by ``frames_per_block`` packed frames (the ``.dat`` byte
+layout), zero-padded to a whole number of 1024-byte packets::
+
+    block_bytes = 1024 + ceil(frames_per_block * frame_bytes / 1024) * 1024   (<= 16 MiB)
+
+Header (little-endian, first 64 bytes of the header packet, the rest zero)::
+
+    0   4s  magic b"SPKB"
+    4   u16 protocol version (1)
+    6   u16 header bytes (1024)
+    8   u64 index of the first frame (device frame counter since power-on)
+    16  u32 frame count in this block (<= frames_per_block)
+    20  u32 frames per block (as configured by START)
+    24  u16 width     26 u16 height     28 u16 stored width     30 u16 layout flags
+    32  u32 frame bytes
+    36  u32 block flags (BF_*)
+    40  u32 block bytes
+    44  u32 CRC-32 of the payload (frame_count * frame_bytes bytes, zlib polynomial)
+    48  u64 frames the device dropped so far (FIFO overflow), cumulative
+    56  u32 block sequence number (mod 2^32)
+    60  u32 CRC-32 of bytes 0..59
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass
+
+__all__ = [
+    "MAGIC",
+    "VERSION",
+    "HEADER_BYTES",
+    "PACKET_BYTES",
+    "MAX_TRANSFER_BYTES",
+    "DEFAULT_VID",
+    "DEFAULT_PID",
+    "EP_IN",
+    "REQ_GET_INFO",
+    "REQ_START",
+    "REQ_STOP",
+    "REQ_GET_STATUS",
+    "RT_VENDOR_IN",
+    "RT_VENDOR_OUT",
+    "BF_DEVICE_OVERFLOW",
+    "BF_SESSION_START",
+    "LF_FLIPUD",
+    "LF_FLIPLR",
+    "BlockHeader",
+    "DeviceInfo",
+    "DeviceStatus",
+    "block_bytes",
+    "frame_alignment",
+    "pack_header",
+    "parse_header",
+    "pack_info",
+    "parse_info",
+    "pack_status",
+    "parse_status",
+]
+
+MAGIC = b"SPKB"
+VERSION = 1
+HEADER_BYTES = 1024
+PACKET_BYTES = 1024  # SuperSpeed bulk wMaxPacketSize
+MAX_TRANSFER_BYTES = 16 * 1024 * 1024  # usbfs_memory_mb default: one read must stay below
+#: placeholder ids of the emulated camera (the real camera's ids are passed with --vid/--pid)
+DEFAULT_VID, DEFAULT_PID = 0x1D6B, 0x5350
+EP_IN = 0x81
+
+# vendor control requests, recipient interface 0
+RT_VENDOR_OUT = 0x41  # host-to-device | vendor | interface
+RT_VENDOR_IN = 0xC1  # device-to-host | vendor | interface
+REQ_GET_INFO = 0x01  # IN, 64 bytes: DeviceInfo
+REQ_START = 0x02  # OUT, wValue = frames per block; flushes the FIFO, starts streaming
+REQ_STOP = 0x03  # OUT
+REQ_GET_STATUS = 0x04  # IN, 32 bytes: DeviceStatus
+
+# block flags
+BF_DEVICE_OVERFLOW = 0x1  # the FIFO overflowed before this block: frames were dropped
+BF_SESSION_START = 0x2  # first block after START
+# layout flags
+LF_FLIPUD, LF_FLIPLR = 0x1, 0x2
+
+_HDR = struct.Struct("<4sHHQIIHHHHIIIIQI")
+_HDR_CRC = struct.Struct("<I")
+assert _HDR.size == 60
+_INFO = struct.Struct("<4sHHHHHHIIIHBB16s8sI4x")
+assert _INFO.size == 64
+_STATUS = struct.Struct("<BBHIQQI4x")
+assert _STATUS.size == 32
+
+
+@dataclass(frozen=True)
+class BlockHeader:
+    first_index: int
+    frame_count: int
+    frames_per_block: int
+    width: int
+    height: int
+    stored_width: int
+    layout_flags: int
+    frame_bytes: int
+    flags: int
+    block_bytes: int
+    payload_crc: int
+    device_dropped: int
+    sequence: int
+    version: int = VERSION
+
+
+def frame_alignment(frame_bytes: int, packet: int = PACKET_BYTES) -> int:
+    """Smallest number of frames whose bytes are a whole number of packets (256 for 12,500)."""
+    from math import gcd
+
+    return packet // gcd(frame_bytes, packet)
+
+
+def block_bytes(frames_per_block: int, frame_bytes: int, packet: int = PACKET_BYTES) -> int:
+    """Bytes of one block: header packet + payload padded to whole packets."""
+    if frames_per_block < 1:
+        raise ValueError(f"frames_per_block must be >= 1, got {frames_per_block}")
+    payload = frames_per_block * frame_bytes
+    n = HEADER_BYTES + -(-payload // packet) * packet
+    if n > MAX_TRANSFER_BYTES:
+        raise ValueError(
+            f"{frames_per_block} frames of {frame_bytes} bytes make a {n}-byte block; one read "
+            f"must stay <= {MAX_TRANSFER_BYTES} bytes (usbfs limit)"
+        )
+    return n
+
+
+def pack_header(h: BlockHeader) -> bytes:
+    """64 header bytes (the caller pads the packet to 1024 bytes with zeros)."""
+    body = _HDR.pack(
+        MAGIC,
+        VERSION,
+        HEADER_BYTES,
+        h.first_index,
+        h.frame_count,
+        h.frames_per_block,
+        h.width,
+        h.height,
+        h.stored_width,
+        h.layout_flags,
+        h.frame_bytes,
+        h.flags,
+        h.block_bytes,
+        h.payload_crc,
+        h.device_dropped,
+        h.sequence & 0xFFFFFFFF,
+    )
+    return body + _HDR_CRC.pack(zlib.crc32(body))
+
+
+def parse_header(buf) -> BlockHeader | None:
+    """Parse 64 header bytes; None if the magic, version or header CRC is wrong."""
+    mv = memoryview(buf)
+    if len(mv) < 64 or bytes(mv[:4]) != MAGIC:
+        return None
+    body = mv[:60]
+    (crc,) = _HDR_CRC.unpack_from(mv, 60)
+    if zlib.crc32(body) != crc:
+        return None
+    f = _HDR.unpack_from(mv, 0)
+    if f[1] != VERSION or f[2] != HEADER_BYTES:
+        return None
+    return BlockHeader(
+        first_index=f[3],
+        frame_count=f[4],
+        frames_per_block=f[5],
+        width=f[6],
+        height=f[7],
+        stored_width=f[8],
+        layout_flags=f[9],
+        frame_bytes=f[10],
+        flags=f[11],
+        block_bytes=f[12],
+        payload_crc=f[13],
+        device_dropped=f[14],
+        sequence=f[15],
+        version=f[1],
+    )
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    width: int
+    height: int
+    stored_width: int
+    layout_flags: int
+    frame_bytes: int
+    rate_hz: int
+    max_block_bytes: int
+    packet_bytes: int
+    ep_in: int
+    serial: str
+    firmware: str
+    default_frames_per_block: int
+    version: int = VERSION
+
+
+def pack_info(d: DeviceInfo) -> bytes:
+    return _INFO.pack(
+        b"SPKI",
+        VERSION,
+        0,
+        d.width,
+        d.height,
+        d.stored_width,
+        d.layout_flags,
+        d.frame_bytes,
+        d.rate_hz,
+        d.max_block_bytes,
+        d.packet_bytes,
+        d.ep_in,
+        0,
+        d.serial.encode()[:16],
+        d.firmware.encode()[:8],
+        d.default_frames_per_block,
+    )
+
+
+def parse_info(buf) -> DeviceInfo:
+    b = bytes(buf)
+    if len(b) < _INFO.size or b[:4] != b"SPKI":
+        raise ValueError(f"not a device info reply ({len(b)} bytes, starts {b[:4]!r})")
+    f = _INFO.unpack_from(b)
+    return DeviceInfo(
+        width=f[3],
+        height=f[4],
+        stored_width=f[5],
+        layout_flags=f[6],
+        frame_bytes=f[7],
+        rate_hz=f[8],
+        max_block_bytes=f[9],
+        packet_bytes=f[10],
+        ep_in=f[11],
+        serial=f[13].rstrip(b"\0").decode(errors="replace"),
+        firmware=f[14].rstrip(b"\0").decode(errors="replace"),
+        default_frames_per_block=f[15],
+        version=f[1],
+    )
+
+
+@dataclass(frozen=True)
+class DeviceStatus:
+    streaming: bool
+    frames_per_block: int
+    next_index: int
+    dropped_total: int
+    fifo_frames: int
+
+
+def pack_status(s: DeviceStatus) -> bytes:
+    return _STATUS.pack(
+        int(s.streaming), 0, 0, s.frames_per_block, s.next_index, s.dropped_total, s.fifo_frames
+    )
+
+
+def parse_status(buf) -> DeviceStatus:
+    b = bytes(buf)
+    if len(b) < _STATUS.size:
+        raise ValueError(f"status reply too short ({len(b)} bytes)")
+    f = _STATUS.unpack_from(b)
+    return DeviceStatus(
+        streaming=bool(f[0]), frames_per_block=f[3], next_index=f[4], dropped_total=f[5],
+        fifo_frames=f[6],
+    )

@@ -1,0 +1,239 @@
+"""One interface for every spike source: the USB camera, the replay device and the simulator.
+
+A :class:`Source` delivers *blocks* of packed frames (the ``.dat`` byte layout, see
+:class:`cfsr.layout.Layout`) with the 64-bit index of the first frame. The index is the
+source's step clock (1 step = 25 us at 40 kHz): consecutive blocks are contiguous unless frames
+were lost (then the index jumps and the gap is the loss) or the content jumped on purpose
+(a replay seek; flagged :attr:`BlockFlags.DISCONTINUITY`).
+
+Optional features are *facilities* (OpenEB style): ``source.get_facility(ReplayControl)``
+returns the facility or ``None`` when the source lacks it, so callers must check::
+
+    ctl = source.get_facility(ReplayControl)
+    if ctl is None:
+        ...  # a live camera cannot seek
+    else:
+        ctl.seek(1000)
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+import time
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import numpy as np
+
+from cfsr.layout import STEP_RATE_HZ, Layout
+
+__all__ = [
+    "Block",
+    "BlockFlags",
+    "CameraControl",
+    "Facility",
+    "ReplayControl",
+    "Source",
+    "SourceDisconnected",
+    "SourceEnded",
+    "SourceError",
+    "SourceInfo",
+    "SourceState",
+]
+
+
+class SourceError(RuntimeError):
+    """A source cannot deliver data as asked (bad configuration, device refused, ...)."""
+
+
+class SourceDisconnected(SourceError):
+    """The device went away (USB errno 19 / 5). Sources that reconnect handle this inside."""
+
+
+class SourceEnded(SourceError):
+    """A finite source (non-looping replay) has delivered its last frame."""
+
+
+class BlockFlags(enum.IntFlag):
+    NONE = 0
+    #: The content does not continue the previous block (seek, new session, reconnect).
+    DISCONTINUITY = 1
+    #: Frames were lost just before this block (index gap); ``Block.lost_before`` says how many.
+    LOSS = 2
+    #: Last block of a finite stream.
+    END = 4
+
+
+class SourceState(enum.StrEnum):
+    CLOSED = "closed"
+    OPENING = "opening"
+    STREAMING = "streaming"
+    PAUSED = "paused"
+    DISCONNECTED = "disconnected"
+    BACKOFF = "backoff"
+    ENDED = "ended"
+    ERROR = "error"
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """What a source is: kind (``usb``/``replay``/``simulator``), geometry and rate."""
+
+    kind: str
+    name: str
+    layout: Layout
+    rate_hz: float = float(STEP_RATE_HZ)
+    max_block_frames: int = 256
+    serial: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "name": self.name,
+            "width": self.layout.width,
+            "height": self.layout.height,
+            "frame_bytes": self.layout.frame_bytes,
+            "rate_hz": self.rate_hz,
+            "max_block_frames": self.max_block_frames,
+            "serial": self.serial,
+        }
+
+
+@dataclass
+class Block:
+    """A block of packed frames.
+
+    Attributes
+    ----------
+    index : int
+        Step index of ``data[0]`` (64-bit, the source's clock).
+    data : ndarray, shape (n, frame_bytes), uint8
+        Packed frames; a view valid until the next ``read_block`` call.
+    flags : BlockFlags
+    lost_before : int
+        Frames the source knows were lost between the previous block and this one.
+    t_host : float
+        ``time.monotonic()`` when the block was received.
+    """
+
+    index: int
+    data: np.ndarray
+    flags: BlockFlags = BlockFlags.NONE
+    lost_before: int = 0
+    t_host: float = field(default_factory=time.monotonic)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.data.shape[0])
+
+
+class Facility:
+    """Base class of optional source features (see :meth:`Source.get_facility`)."""
+
+    name = "facility"
+
+
+class ReplayControl(Facility):
+    """Transport controls of a recorded or synthetic source (not available on a camera)."""
+
+    name = "replay"
+
+    @abc.abstractmethod
+    def play(self) -> None: ...
+
+    @abc.abstractmethod
+    def pause(self) -> None: ...
+
+    @abc.abstractmethod
+    def step(self, n: int = 1) -> None:
+        """While paused, deliver the next ``n`` frames."""
+
+    @abc.abstractmethod
+    def seek(self, frame: int) -> None:
+        """Jump to file frame ``frame`` (O(1))."""
+
+    @abc.abstractmethod
+    def state(self) -> dict[str, Any]:
+        """``playing, speed, loop, position, n_frames, mode``."""
+
+    @abc.abstractmethod
+    def set_speed(self, speed: float) -> None: ...
+
+    @abc.abstractmethod
+    def set_loop(self, loop: bool) -> None: ...
+
+
+class CameraControl(Facility):
+    """Controls only a live camera has (device info, stream start/stop, device counters)."""
+
+    name = "camera"
+
+    @abc.abstractmethod
+    def device_info(self) -> dict[str, Any]: ...
+
+    @abc.abstractmethod
+    def device_status(self) -> dict[str, Any]: ...
+
+
+F = TypeVar("F", bound=Facility)
+
+
+class Source(abc.ABC):
+    """A stream of packed spike frames.
+
+    Subclasses implement :meth:`open`, :meth:`close`, :meth:`read_block` and declare their
+    facilities in ``self._facilities``.
+    """
+
+    info: SourceInfo
+
+    def __init__(self) -> None:
+        self._facilities: dict[type[Facility], Facility] = {}
+        self.state = SourceState.CLOSED
+        self.last_error: str | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------
+    @abc.abstractmethod
+    def open(self) -> None: ...
+
+    @abc.abstractmethod
+    def close(self) -> None: ...
+
+    @abc.abstractmethod
+    def read_block(self, timeout: float = 0.5) -> Block | None:
+        """The next block, or ``None`` if none arrived within ``timeout`` seconds.
+
+        Raises :class:`SourceEnded` after the last block of a finite source.
+        """
+
+    # -- capability discovery -------------------------------------------------------------
+    def get_facility(self, kind: type[F]) -> F | None:
+        """The facility of type ``kind`` or ``None`` when this source has none."""
+        for cls, fac in self._facilities.items():
+            if issubclass(cls, kind):
+                return fac  # type: ignore[return-value]
+        return None
+
+    def capabilities(self) -> list[str]:
+        return sorted(f.name for f in self._facilities.values())
+
+    def counters(self) -> dict[str, int]:
+        """Cumulative counters (frames delivered, frames lost, errors by kind)."""
+        return {}
+
+    def describe(self) -> dict[str, Any]:
+        d = self.info.to_dict()
+        d["state"] = self.state.value
+        d["capabilities"] = self.capabilities()
+        d["counters"] = self.counters()
+        d["last_error"] = self.last_error
+        return d
+
+    def __enter__(self) -> Source:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,86 @@
+"""The FastAPI application factory.
+
+``create_app(settings)`` builds an app whose lifespan owns every resource: it starts the
+source, acquisition, ring and worker (:class:`service.runtime.Runtime`) and the frame hub on
+startup, and stops them in reverse on shutdown. Routers are split by concern
+(``service/routers``); shared state reaches handlers through dependencies (``service/deps``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
+from service.hub import FrameHub
+from service.runtime import Runtime
+from service.settings import Settings
+
+__all__ = ["create_app", "viewer_dir"]
+
+log = logging.getLogger("cfsr.app")
+
+
+def viewer_dir(settings: Settings | None = None) -> Path:
+    if settings is not None and settings.viewer_dir is not None:
+        return Path(settings.viewer_dir)
+    return Path(__file__).resolve().parents[1] / "viewer"
+
+
+def create_app(settings: Settings) -> FastAPI:
+    from service.routers import config, debug, health, media, record, sources, status
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        rt = Runtime(settings)
+        await asyncio.to_thread(rt.start)
+        hub = FrameHub(rt.slot)
+        app.state.runtime = rt
+        app.state.hub = hub
+        task = asyncio.create_task(hub.run(), name="cfsr-hub")
+        try:
+            yield
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            await asyncio.to_thread(rt.stop)
+
+    app = FastAPI(
+        title="CFSR live",
+        version=_version(),
+        summary="Live spike-camera reconstruction: sources, worker, frames, masks, metrics.",
+        description=(
+            "Units: time in steps (1 step = 25 us at 40 kHz), rates in spikes/step. "
+            "Frames stream over `WS /ws` (binary: 64-byte header, 8-bit image, coarse and fine "
+            "masks as bit planes) and `GET /stream.mjpg`. When the service was started with an "
+            "access token, send it as `Authorization: Bearer ...` or `?token=`."
+        ),
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = status.make_registry(app)
+    for r in (health, status, config, sources, record, media):
+        app.include_router(r.router)
+    if settings.test_hooks:
+        app.include_router(debug.router)
+    vd = viewer_dir(settings)
+    if vd.is_dir():
+        app.mount("/", StaticFiles(directory=vd, html=True), name="viewer")
+    else:
+        log.warning("viewer folder %s is missing; only the API is served", vd)
+    return app
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("cfsr")
+    except Exception:  # noqa: BLE001
+        return "0"

@@ -1,0 +1,121 @@
+"""``cfsr serve``: the live service and browser viewer.
+
+With no arguments it plays the built-in demo recording (simulated on first use and cached)
+on http://127.0.0.1:8000/. FastAPI, uvicorn and pyusb are imported inside :func:`run` only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+
+def _int_auto(text: str) -> int:
+    return int(text, 0)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--replay", metavar="FILE", type=Path, help="replay a .dat recording")
+    src.add_argument("--usb", action="store_true", help="use the USB spike camera")
+    src.add_argument("--sim", metavar="SCENE", help="live simulator source (pattern, disk, ...)")
+    p.add_argument("--vid", type=_int_auto, help="USB vendor id (with --usb), e.g. 0x1d6b")
+    p.add_argument("--pid", type=_int_auto, help="USB product id (with --usb)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="bind address (default 127.0.0.1; anything else needs --token)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--token", default=os.environ.get("CFSR_TOKEN"),
+                   help="access token the API requires (default $CFSR_TOKEN)")
+    p.add_argument("--data-dir", type=Path, default=None,
+                   help="folder of recordings offered in the viewer; recordings are written to "
+                   "DATA_DIR/recordings (default $CFSR_DATA_DIR or ~/.local/share/cfsr)")
+    p.add_argument("--method", default="tfp", help="initial reconstruction method (default tfp)")
+    p.add_argument("--speed", type=float, default=1.0, help="replay speed (1 = real time)")
+    p.add_argument("--no-loop", action="store_true", help="stop at the end of a replay")
+    p.add_argument("--max-fps", type=float, default=30.0, help="most frames/s published")
+    p.add_argument("--ring-seconds", type=float, default=0.25,
+                   help="seconds of sensor data the shared ring holds (default 0.25)")
+    p.add_argument("--replay-mode", choices=("paced", "fast"), default="paced",
+                   help="paced: real-time schedule (default); fast: deterministic, as fast as "
+                   "the worker consumes (tests)")
+    p.add_argument("--log-level", default="warning", help="uvicorn log level")
+    p.add_argument("--test-hooks", action="store_true", help=argparse.SUPPRESS)
+
+
+def build_settings(args: argparse.Namespace):
+    from service.settings import Settings, SourceSpec, default_data_dir
+
+    if (args.vid is not None or args.pid is not None) and not args.usb:
+        raise ValueError("--vid/--pid only apply with --usb")
+    if args.replay is not None:
+        if not args.replay.is_file():
+            raise ValueError(f"{args.replay}: no such recording")
+        spec = SourceSpec(kind="replay", path=args.replay.resolve())
+    elif args.usb:
+        spec = SourceSpec(kind="usb", vid=args.vid, pid=args.pid)
+    elif args.sim:
+        spec = SourceSpec(kind="sim", scene=args.sim)
+    else:
+        spec = SourceSpec(kind="demo")
+    return Settings(
+        host=args.host,
+        port=args.port,
+        token=args.token or None,
+        data_dir=args.data_dir or default_data_dir(),
+        source=spec,
+        speed=args.speed,
+        loop=not args.no_loop,
+        replay_mode=args.replay_mode,
+        method=args.method,
+        max_fps=args.max_fps,
+        ring_seconds=args.ring_seconds,
+        test_hooks=args.test_hooks,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = build_settings(args)  # refuses a non-loopback bind without a token
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    if settings.source.kind == "demo":
+        from service.demo import ensure_demo
+
+        ensure_demo(settings.demo_steps, say=lambda m: print(f"cfsr serve: {m}", flush=True))
+
+    import uvicorn
+
+    from service.app import create_app
+
+    app = create_app(settings)
+    host = settings.host
+    shown = f"[{host}]" if ":" in host else host
+    url = f"http://{shown}:{settings.port}/"
+    if settings.token:
+        url += f"?token={settings.token}"
+
+    class _Server(uvicorn.Server):
+        async def startup(self, sockets=None):
+            await super().startup(sockets)
+            if self.started:
+                print(f"cfsr serve: viewer at {url}  (source: {settings.source.id}; "
+                      f"Ctrl+C to stop)", flush=True)
+
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=settings.port,
+        log_level=args.log_level,
+        access_log=False,
+        ws_per_message_deflate=False,
+        ws_ping_interval=20,
+        ws_ping_timeout=20,
+        timeout_graceful_shutdown=3,
+        workers=1,
+    )
+    server = _Server(config)
+    server.run()
+    if not server.started:
+        print(f"cfsr serve: error: could not start on {host}:{settings.port}", file=sys.stderr)
+        return 1
+    return 0

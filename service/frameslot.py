@@ -1,0 +1,227 @@
+"""The latest-frame slot: shared memory from the worker process to the web process.
+
+Holds exactly one frame (the newest): the 8-bit display image, the coarse and fine masks, and
+the metadata of the step, behind a seqlock (the writer makes the sequence odd while writing;
+a reader retries if the sequence changed under it). A second region holds the worker's live
+counters (heartbeat, timings, drops) as float64 words the worker updates in place.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from itertools import count
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["FrameSlot", "SlotFrame", "STAT_FIELDS"]
+
+_MAGIC = 0x544F4C53_4D415246  # "FRAMSLOT"
+_HDR = 1024
+_STATS_OFF = 1024
+_PAYLOAD_OFF = 4096
+# int64 header words
+_M, _SEQ, _MAXPIX, _W, _H, _STEP, _FRAMENO, _FLAGS = 0, 1, 2, 3, 4, 5, 6, 7
+# float64 header words (same array viewed as float64)
+_TPUB, _TARR, _COMPUTE, _GAIN, _LAT = 8, 9, 10, 11, 12
+_NAME_OFF, _NAME_LEN = 256, 32  # method name, ASCII
+
+#: worker counters, in order, stored as float64 words in the stats region
+STAT_FIELDS = (
+    "heartbeat",  # time.monotonic() of the last loop
+    "pid",
+    "frames_out",
+    "steps_ingested",
+    "worker_skip_frames",
+    "ring_lost_frames",
+    "ring_overruns",
+    "ring_torn",
+    "gaps",
+    "errors",
+    "compute_ms",  # EMA
+    "latency_ms",  # EMA, arrival of the newest step used -> publish
+    "config_version",
+    "started",
+)
+_names = count()
+
+
+@dataclass
+class SlotFrame:
+    seq: int
+    step: int
+    frame_no: int
+    width: int
+    height: int
+    method: str
+    gain: float
+    t_publish: float
+    t_arrival: float
+    compute_ms: float
+    latency_ms: float
+    image: np.ndarray
+    masks: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class FrameSlot:
+    """Create with :meth:`create` (web process), :meth:`attach` by path (worker)."""
+
+    MASK_NAMES = ("coarse", "fine")
+
+    def __init__(self, path: Path, mm: mmap.mmap, owner: bool) -> None:
+        self.path, self._mm, self.owner = path, mm, owner
+        self._i = np.frombuffer(mm, np.int64, _HDR // 8, 0)
+        self._f = self._i.view(np.float64)
+        if self._i[_M] != _MAGIC:
+            raise ValueError(f"{path}: not a frame slot")
+        self.max_pixels = int(self._i[_MAXPIX])
+        self._stats = np.frombuffer(mm, np.float64, len(STAT_FIELDS), _STATS_OFF)
+        mp = self.max_pixels
+        self._img = np.frombuffer(mm, np.uint8, mp, _PAYLOAD_OFF)
+        self._masks = {
+            name: np.frombuffer(mm, np.uint8, mp, _PAYLOAD_OFF + (k + 1) * mp)
+            for k, name in enumerate(self.MASK_NAMES)
+        }
+
+    @classmethod
+    def create(cls, max_pixels: int = 1024 * 1024, directory: str | None = None) -> FrameSlot:
+        size = _PAYLOAD_OFF + 3 * max_pixels
+        d = Path(directory or ("/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()))
+        if os.environ.get("CFSR_RING_DIR"):
+            d = Path(os.environ["CFSR_RING_DIR"])
+        from driver.ring import remove_stale_files
+
+        remove_stale_files(d, "cfsr-frame")
+        path = d / f"cfsr-frame-{os.getpid()}-{next(_names)}-{time.monotonic_ns() % 10**9}"
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+        try:
+            os.ftruncate(fd, size)
+            mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+        finally:
+            os.close(fd)
+        hdr = np.frombuffer(mm, np.int64, _HDR // 8, 0)
+        hdr[_MAXPIX] = max_pixels
+        hdr[_M] = _MAGIC
+        del hdr
+        return cls(path, mm, owner=True)
+
+    @classmethod
+    def attach(cls, path: str | os.PathLike) -> FrameSlot:
+        p = Path(path)
+        fd = os.open(p, os.O_RDWR)
+        try:
+            mm = mmap.mmap(fd, os.fstat(fd).st_size, mmap.MAP_SHARED)
+        finally:
+            os.close(fd)
+        return cls(p, mm, owner=False)
+
+    def close(self) -> None:
+        if self._mm is None:
+            return
+        self._i = self._f = self._stats = self._img = None  # type: ignore[assignment]
+        self._masks = {}
+        try:
+            self._mm.close()
+        except BufferError:
+            pass
+        self._mm = None  # type: ignore[assignment]
+        if self.owner:
+            try:
+                self.path.unlink()
+            except FileNotFoundError:
+                pass
+
+    # -- writer (worker) ----------------------------------------------------------------------
+    def publish(
+        self,
+        *,
+        step: int,
+        image: np.ndarray,
+        masks: dict[str, np.ndarray],
+        method: str,
+        gain: float,
+        t_arrival: float,
+        compute_ms: float,
+        latency_ms: float,
+    ) -> None:
+        h, w = image.shape
+        if h * w > self.max_pixels:
+            raise ValueError(f"frame {w} x {h} exceeds the slot ({self.max_pixels} pixels)")
+        i, f = self._i, self._f
+        seq = int(i[_SEQ])
+        i[_SEQ] = seq + 1  # odd: writing
+        self._img[: h * w] = image.reshape(-1)
+        flags = 0
+        for k, name in enumerate(self.MASK_NAMES):
+            m = masks.get(name)
+            if m is not None:
+                self._masks[name][: h * w] = np.asarray(m, np.uint8).reshape(-1)
+                flags |= 1 << k
+        i[_W], i[_H], i[_STEP], i[_FLAGS] = w, h, step, flags
+        i[_FRAMENO] += 1
+        f[_TPUB], f[_TARR], f[_COMPUTE], f[_GAIN], f[_LAT] = (
+            time.monotonic(),
+            t_arrival,
+            compute_ms,
+            gain,
+            latency_ms,
+        )
+        name = method.encode("ascii", "replace")[: _NAME_LEN - 1]
+        self._mm[_NAME_OFF : _NAME_OFF + _NAME_LEN] = name.ljust(_NAME_LEN, b"\0")
+        i[_SEQ] = seq + 2
+
+    def set_stat(self, name: str, value: float) -> None:
+        self._stats[STAT_FIELDS.index(name)] = value
+
+    def stats_array(self) -> np.ndarray:
+        return self._stats
+
+    # -- reader (web process) -------------------------------------------------------------------
+    @property
+    def seq(self) -> int:
+        return int(self._i[_SEQ])
+
+    def stats(self) -> dict[str, float]:
+        return {k: float(v) for k, v in zip(STAT_FIELDS, self._stats, strict=True)}
+
+    def read(self, *, since: int = -1, retries: int = 50) -> SlotFrame | None:
+        """A consistent copy of the newest frame, or None if none newer than ``since``."""
+        i, f = self._i, self._f
+        for _ in range(retries):
+            s1 = int(i[_SEQ])
+            if s1 == 0 or s1 == since:
+                return None
+            if s1 & 1:
+                time.sleep(0.0002)
+                continue
+            w, h, step, flags = int(i[_W]), int(i[_H]), int(i[_STEP]), int(i[_FLAGS])
+            img = self._img[: h * w].copy().reshape(h, w)
+            masks = {
+                name: self._masks[name][: h * w].copy().reshape(h, w)
+                for k, name in enumerate(self.MASK_NAMES)
+                if flags & (1 << k)
+            }
+            meta = (int(i[_FRAMENO]), float(f[_TPUB]), float(f[_TARR]), float(f[_COMPUTE]))
+            gain, lat = float(f[_GAIN]), float(f[_LAT])
+            name = bytes(self._mm[_NAME_OFF : _NAME_OFF + _NAME_LEN]).split(b"\0")[0].decode()
+            if int(i[_SEQ]) == s1:
+                return SlotFrame(
+                    seq=s1,
+                    step=step,
+                    frame_no=meta[0],
+                    width=w,
+                    height=h,
+                    method=name,
+                    gain=gain,
+                    t_publish=meta[1],
+                    t_arrival=meta[2],
+                    compute_ms=meta[3],
+                    latency_ms=lat,
+                    image=img,
+                    masks=masks,
+                )
+        return None

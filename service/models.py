@@ -1,0 +1,214 @@
+"""Typed request and response models of the HTTP API (they make the OpenAPI document)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+__all__ = [
+    "ClientDrops",
+    "ConfigModel",
+    "ConfigUpdate",
+    "DisplayConfig",
+    "Drops",
+    "Health",
+    "MethodInfo",
+    "RecordRequest",
+    "RecordStatus",
+    "ReplayState",
+    "ReplayUpdate",
+    "SeekRequest",
+    "SourceItem",
+    "SourceSelect",
+    "SourceStatus",
+    "StatusModel",
+    "StepRequest",
+    "WorkerStatus",
+]
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+    uptime_s: float
+
+
+class DisplayConfig(BaseModel):
+    gain_mode: Literal["recording", "auto", "fixed"] = Field(
+        "recording",
+        description="recording: the file's display gain if it has one, else auto; auto: the "
+        "99.5th percentile of each frame; fixed: `gain`",
+    )
+    gain: float | None = Field(
+        None, gt=0, le=1, description="firing rate shown as white, spikes/step (fixed mode)"
+    )
+
+
+class ConfigModel(BaseModel):
+    method: str = Field(description="reconstruction method (see GET /api/methods)")
+    params: dict[str, Any] = Field(description="method parameters, validated by the method")
+    display: DisplayConfig
+    max_fps: float = Field(description="most frames per second the worker publishes")
+    effective_gain: float | None = Field(
+        None, description="gain in use (None: automatic per frame), spikes/step"
+    )
+
+
+class ConfigUpdate(BaseModel):
+    method: str | None = None
+    params: dict[str, Any] | None = Field(
+        None, description="parameters to set; omitted ones keep their values (reset on a "
+        "method change)"
+    )
+    display: DisplayConfig | None = None
+    max_fps: float | None = Field(None, gt=0, le=240)
+
+
+class ParamInfo(BaseModel):
+    default: Any
+    unit: str
+    help: str
+
+
+class MethodInfo(BaseModel):
+    name: str
+    summary: str
+    reference: str = ""
+    masks: list[str]
+    params: dict[str, ParamInfo]
+    presets: dict[str, dict[str, Any]] = {}
+
+
+class ReplayState(BaseModel):
+    playing: bool
+    speed: float
+    loop: bool
+    position: int = Field(description="file frame of the next block")
+    start: int
+    end: int
+    n_frames: int
+    mode: str
+    loops: int
+    ended: bool
+    rate_hz: float
+
+
+class ReplayUpdate(BaseModel):
+    playing: bool | None = None
+    speed: float | None = Field(None, gt=0, le=1000, description="1.0 = real time")
+    loop: bool | None = None
+
+
+class SeekRequest(BaseModel):
+    position: int | None = Field(None, ge=0, description="file frame")
+    seconds: float | None = Field(None, ge=0, description="time into the recording, s")
+
+
+class StepRequest(BaseModel):
+    n: int = Field(1, ge=1, le=1_000_000, description="frames to deliver while paused")
+
+
+class SourceItem(BaseModel):
+    id: str
+    kind: str
+    name: str
+    frames: int | None = None
+    bytes: int | None = None
+    width: int | None = None
+    height: int | None = None
+    duration_s: float | None = None
+    note: str | None = None
+    current: bool = False
+
+
+class SourceSelect(BaseModel):
+    id: str = Field(description="an id from GET /api/sources")
+
+
+class SourceStatus(BaseModel):
+    id: str | None
+    kind: str | None
+    name: str | None
+    state: str | None
+    capabilities: list[str] = []
+    width: int | None = None
+    height: int | None = None
+    rate_hz: float | None = None
+    counters: dict[str, Any] = {}
+    replay: ReplayState | None = None
+    last_error: str | None = None
+
+
+class ClientDrops(BaseModel):
+    id: int
+    kind: str
+    peer: str
+    sent: int
+    dropped: int
+    pending: int
+    max_fps: float | None
+    connected_s: float
+
+
+class Drops(BaseModel):
+    usb: int = Field(0, description="frames lost on the USB link (index gaps, bad blocks)")
+    replay: int = Field(0, description="frames a paced replay skipped to stay on schedule")
+    ring: int = Field(0, description="frames the worker lost because the ring overran it")
+    worker: int = Field(0, description="frames the worker skipped to show the newest data")
+    clients: int = Field(0, description="frames replaced before a client could receive them")
+    recorder: int = Field(0, description="frames the current/last recording lost")
+    per_client: list[ClientDrops] = []
+
+
+class WorkerStatus(BaseModel):
+    alive: bool
+    ready: bool
+    pid: int | None
+    restarts: int
+    crashes: list[dict[str, Any]]
+    last_errors: list[dict[str, Any]]
+    config_version: int
+    applied_version: int
+    heartbeat_age_s: float | None
+    steps_per_s: float
+    real_time_factor: float
+    frames_out: int
+    gaps: int
+
+
+class RecordStatus(BaseModel):
+    recording: bool
+    path: str | None = None
+    name: str | None = None
+    frames: int = 0
+    bytes: int = 0
+    elapsed_s: float = 0.0
+    lost_frames: int = 0
+    error: str | None = None
+
+
+class RecordRequest(BaseModel):
+    action: Literal["start", "stop"]
+    name: str | None = Field(
+        None, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+        description="file name without folder (.dat added); default rec-<time>",
+    )
+    max_frames: int | None = Field(None, ge=1, description="stop by itself after this many")
+
+
+class StatusModel(BaseModel):
+    uptime_s: float
+    source: SourceStatus
+    method: str
+    params: dict[str, Any]
+    input_steps_per_s: float = Field(description="steps/s entering the ring from the source")
+    real_time_factor: float = Field(description="input steps/s divided by the sensor rate")
+    output_fps: float = Field(description="reconstructed frames/s published by the worker")
+    latency_ms: float = Field(description="newest spike used -> frame published (EMA)")
+    compute_ms: float = Field(description="reconstruction time per frame (EMA)")
+    frame_step: int | None = Field(None, description="step index of the newest frame")
+    drops: Drops
+    worker: WorkerStatus
+    ring: dict[str, Any]
+    clients: int
+    recording: RecordStatus

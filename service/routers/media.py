@@ -1,0 +1,163 @@
+"""The newest frame as PNG, an MJPEG stream, and the binary WebSocket for the viewer."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, WebSocket
+from fastapi.responses import Response, StreamingResponse
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from service.deps import HubDep, require_token, ws_token_ok
+from service.hub import ClientQueue, FrameHub
+from service.render import encode_jpeg, encode_png, render_rgb
+
+router = APIRouter(tags=["media"])
+log = logging.getLogger("cfsr.media")
+
+_SEND_TIMEOUT = 10.0
+
+
+def _overlays(spec: str) -> tuple[str, ...]:
+    out = tuple(s for s in (x.strip() for x in spec.split(",")) if s)
+    bad = [s for s in out if s not in ("coarse", "fine")]
+    if bad:
+        raise HTTPException(422, f"unknown overlay(s) {bad}; use coarse, fine")
+    return out
+
+
+@router.get(
+    "/api/frame.png",
+    dependencies=[Depends(require_token)],
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}, 503: {"description": "no frame yet"}},
+    summary="the newest reconstructed frame as PNG",
+)
+async def frame_png(
+    hub: HubDep,
+    view: str = Query("gray", pattern="^(gray|heat)$"),
+    overlay: str = Query("", description="comma list of masks to tint: coarse, fine"),
+    wait: float = Query(2.0, ge=0, le=30, description="seconds to wait for a first frame"),
+) -> Response:
+    ov = _overlays(overlay)
+    f = hub.latest
+    if f is None and wait > 0:
+        f = await hub.wait_frame(wait)
+    if f is None:
+        raise HTTPException(503, "no frame yet")
+    png = await asyncio.to_thread(lambda: encode_png(render_rgb(f, view=view, overlays=ov)))
+    return Response(
+        png,
+        media_type="image/png",
+        headers={"Cache-Control": "no-store", "X-Frame-Step": str(f.step),
+                 "X-Method": f.method},
+    )
+
+
+@router.get(
+    "/stream.mjpg",
+    dependencies=[Depends(require_token)],
+    response_class=StreamingResponse,
+    responses={200: {"content": {"multipart/x-mixed-replace; boundary=frame": {}}}},
+    summary="MJPEG stream of the reconstruction (for <img>, curl, VLC)",
+)
+async def mjpeg(
+    request: Request,
+    hub: HubDep,
+    fps: float = Query(15.0, gt=0, le=60),
+    view: str = Query("gray", pattern="^(gray|heat)$"),
+    overlay: str = Query(""),
+) -> StreamingResponse:
+    ov = _overlays(overlay)
+    client = hub.add(ClientQueue("mjpeg", max_fps=fps, peer=str(request.client)))
+
+    async def frames():
+        try:
+            while not await request.is_disconnected():
+                try:
+                    f = await asyncio.wait_for(client.get(), 1.0)
+                except TimeoutError:
+                    continue
+                jpg = await asyncio.to_thread(
+                    lambda f=f: encode_jpeg(render_rgb(f, view=view, overlays=ov))
+                )
+                yield (
+                    b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                    + str(len(jpg)).encode()
+                    + b"\r\n\r\n"
+                    + jpg
+                    + b"\r\n"
+                )
+                client.sent += 1
+                await asyncio.sleep(1.0 / fps)
+        finally:
+            hub.remove(client)
+
+    return StreamingResponse(
+        frames(),
+        media_type="multipart/x-mixed-replace; boundary=frame",
+        headers={"Cache-Control": "no-store"},
+    )
+
+
+@router.websocket("/ws")
+async def ws(websocket: WebSocket) -> None:
+    """Binary frame messages (see ``service.hub``), one per new frame, latest-only per client.
+
+    The client may send JSON text ``{"max_fps": N}`` to cap its own rate.
+    """
+    if not ws_token_ok(websocket):
+        await websocket.close(code=1008, reason="missing or wrong access token")
+        return
+    await websocket.accept()
+    hub: FrameHub = websocket.app.state.hub
+    try:
+        max_fps = float(websocket.query_params.get("max_fps", "0")) or None
+    except ValueError:
+        max_fps = None
+    client = hub.add(ClientQueue("ws", max_fps=max_fps, peer=str(websocket.client)))
+
+    async def sender() -> None:
+        while True:
+            msg = await client.get()
+            await asyncio.wait_for(websocket.send_bytes(msg), _SEND_TIMEOUT)
+            client.sent += 1
+            if client.max_fps:
+                await asyncio.sleep(1.0 / client.max_fps)
+
+    send_task = asyncio.create_task(sender())
+    try:
+        while True:
+            recv = asyncio.create_task(websocket.receive())
+            done, _ = await asyncio.wait({recv, send_task}, return_when=asyncio.FIRST_COMPLETED)
+            if send_task in done:
+                recv.cancel()
+                exc = send_task.exception()
+                if exc is not None and not isinstance(exc, WebSocketDisconnect):
+                    log.info("websocket client %s dropped: %r", client.id, exc)
+                break
+            msg = recv.result()
+            if msg["type"] == "websocket.disconnect":
+                break
+            text = msg.get("text")
+            if text:
+                try:
+                    req = json.loads(text)
+                    if "max_fps" in req:
+                        v = float(req["max_fps"])
+                        client.max_fps = v if v > 0 else None
+                except (ValueError, TypeError):
+                    pass
+    except WebSocketDisconnect:
+        pass
+    finally:
+        send_task.cancel()
+        with contextlib.suppress(BaseException):
+            await send_task
+        hub.remove(client)
+        if websocket.application_state == WebSocketState.CONNECTED:
+            with contextlib.suppress(Exception):
+                await websocket.close()

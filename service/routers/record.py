@@ -1,0 +1,32 @@
+"""Recording the live stream to .dat + sidecar in the data folder."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Depends, HTTPException
+
+from service.deps import RuntimeDep, require_token
+from service.models import RecordRequest, RecordStatus
+from service.runtime import ConflictError
+
+router = APIRouter(tags=["record"], dependencies=[Depends(require_token)])
+
+
+@router.get("/api/record", response_model=RecordStatus, summary="recording state")
+async def record_status(rt: RuntimeDep) -> dict:
+    return rt.record_status()
+
+
+@router.post("/api/record", response_model=RecordStatus,
+             summary="start or stop recording (DATA_DIR/recordings/NAME.dat + sidecar)",
+             responses={409: {"description": "already recording / not recording / exists"}})
+async def record(body: RecordRequest, rt: RuntimeDep) -> dict:
+    try:
+        if body.action == "start":
+            return await asyncio.to_thread(rt.start_recording, body.name, body.max_frames)
+        return await asyncio.to_thread(rt.stop_recording)
+    except ConflictError as exc:
+        raise HTTPException(409, str(exc)) from exc
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from exc

@@ -1,0 +1,99 @@
+"""Sources (recordings in the data folder, the demo, the USB camera, the simulator) and
+replay controls."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi import APIRouter, Depends, HTTPException
+
+from driver.source import SourceError
+from service.deps import RuntimeDep, require_token
+from service.models import (
+    ReplayState,
+    ReplayUpdate,
+    SeekRequest,
+    SourceItem,
+    SourceSelect,
+    SourceStatus,
+    StepRequest,
+)
+from service.runtime import ConflictError, Runtime
+
+router = APIRouter(tags=["sources"], dependencies=[Depends(require_token)])
+
+
+@router.get("/api/sources", response_model=list[SourceItem],
+            summary="what can be opened: data-folder recordings, demo, USB camera, simulator")
+async def list_sources(rt: RuntimeDep) -> list[dict]:
+    return await asyncio.to_thread(rt.list_sources)
+
+
+@router.put("/api/source", response_model=SourceStatus, summary="switch the live source",
+            responses={404: {"description": "id not in GET /api/sources"},
+                       422: {"description": "the source could not be opened"}})
+async def put_source(body: SourceSelect, rt: RuntimeDep) -> dict:
+    try:
+        d = await asyncio.to_thread(rt.switch_source, body.id)
+    except KeyError:
+        raise HTTPException(404, f"no source with id {body.id!r}; see GET /api/sources") from None
+    except (ValueError, OSError, SourceError) as exc:
+        raise HTTPException(422, f"cannot open {body.id!r}: {exc}") from exc
+    st = rt.status()["source"]
+    st.update({k: d[k] for k in ("state", "capabilities") if k in d})
+    return st
+
+
+def _replay(rt: Runtime):
+    try:
+        return rt.replay()
+    except ConflictError as exc:
+        raise HTTPException(409, str(exc)) from exc
+
+
+@router.get("/api/replay", response_model=ReplayState, summary="replay transport state",
+            responses={409: {"description": "the current source is not a replay"}})
+async def get_replay(rt: RuntimeDep) -> dict:
+    return _replay(rt).state()
+
+
+@router.put("/api/replay", response_model=ReplayState, summary="play/pause, speed, loop",
+            responses={409: {"description": "the current source is not a replay"}})
+async def put_replay(body: ReplayUpdate, rt: RuntimeDep) -> dict:
+    ctl = _replay(rt)
+    try:
+        if body.speed is not None:
+            ctl.set_speed(body.speed)
+        if body.loop is not None:
+            ctl.set_loop(body.loop)
+        if body.playing is True:
+            ctl.play()
+        elif body.playing is False:
+            ctl.pause()
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from exc
+    return ctl.state()
+
+
+@router.post("/api/replay/seek", response_model=ReplayState, summary="jump to a frame or time",
+             responses={409: {"description": "the current source is not a replay"}})
+async def seek(body: SeekRequest, rt: RuntimeDep) -> dict:
+    ctl = _replay(rt)
+    st = ctl.state()
+    if body.position is None and body.seconds is None:
+        raise HTTPException(422, "give position (frames) or seconds")
+    pos = body.position if body.position is not None else int(round(body.seconds * st["rate_hz"]))
+    try:
+        ctl.seek(pos)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from exc
+    return ctl.state()
+
+
+@router.post("/api/replay/step", response_model=ReplayState,
+             summary="deliver n frames (while paused)",
+             responses={409: {"description": "the current source is not a replay"}})
+async def step(body: StepRequest, rt: RuntimeDep) -> dict:
+    ctl = _replay(rt)
+    ctl.step(body.n)
+    return ctl.state()

@@ -1,0 +1,422 @@
+"""The service's moving parts, owned by the FastAPI lifespan: source, acquisition thread,
+ring, worker supervisor, frame hub and recorder.
+
+Data flow: ``Source.read_block`` -> :class:`~driver.acquisition.Acquisition` ->
+:class:`~driver.ring.SpikeRing` (shared memory) -> worker process -> latest-frame slot ->
+:class:`~service.hub.FrameHub` -> per-client latest-only queues.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import threading
+import time
+from collections import deque
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from cfsr.layout import Layout
+from driver.acquisition import Acquisition
+from driver.ring import SpikeRing
+from driver.source import CameraControl, ReplayControl, Source
+from service.catalog import SourceCatalog
+from service.frameslot import FrameSlot
+from service.settings import Settings, SourceSpec
+from service.worker import WorkerSupervisor
+
+__all__ = ["Runtime", "ConflictError"]
+
+log = logging.getLogger("cfsr.runtime")
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+
+
+class ConflictError(RuntimeError):
+    """The request cannot be served in the current state (HTTP 409)."""
+
+
+class _RateMeter:
+    def __init__(self, window: float = 2.0) -> None:
+        self.window = window
+        self._s: deque[tuple[float, float]] = deque(maxlen=64)
+
+    def add(self, value: float, t: float | None = None) -> None:
+        self._s.append((time.monotonic() if t is None else t, value))
+
+    def rate(self) -> float:
+        if len(self._s) < 2:
+            return 0.0
+        t1, v1 = self._s[-1]
+        t0, v0 = self._s[0]
+        for t, v in self._s:
+            if t1 - t <= self.window:
+                t0, v0 = t, v
+                break
+        return (v1 - v0) / (t1 - t0) if t1 > t0 else 0.0
+
+
+class Runtime:
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.catalog = SourceCatalog(settings)
+        self.catalog.add_cli_source(settings.source)
+        self.slot: FrameSlot | None = None
+        self.ring: SpikeRing | None = None
+        self.source: Source | None = None
+        self.source_id: str | None = None
+        self.acq: Acquisition | None = None
+        self.worker: WorkerSupervisor | None = None
+        self.recorder = None
+        self.last_recording: dict[str, Any] | None = None
+        self.config: dict[str, Any] = {
+            "method": settings.method,
+            "params": dict(settings.params),
+            "display": {"gain_mode": "recording", "gain": None},
+            "max_fps": settings.max_fps,
+        }
+        self._lock = threading.RLock()
+        self.started = time.monotonic()
+        self._in_rate = _RateMeter()
+        self._work_rate = _RateMeter()
+        self._frames_base = 0  # frames published into earlier rings
+        self._lost_base: dict[str, float] = {}
+        self._sampler_stop = threading.Event()
+        self._sampler: threading.Thread | None = None
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def start(self) -> None:
+        from cfsr.methods.registry import get_method, resolve_params
+
+        m = get_method(self.config["method"])
+        self.config["method"] = m.name
+        self.config["params"] = resolve_params(m, self.config["params"])
+        self.slot = FrameSlot.create()
+        spec = self.settings.source
+        src = self.catalog.open(spec)
+        self._install(src, spec.id)
+        self.worker = WorkerSupervisor(
+            self.slot, self._worker_config(), hang_timeout=self.settings.worker_hang_timeout
+        )
+        assert self.ring is not None
+        self.worker.start(str(self.ring.path), self.source.info.layout.to_dict())
+        self._sampler = threading.Thread(target=self._sample, name="cfsr-rates", daemon=True)
+        self._sampler.start()
+
+    def stop(self) -> None:
+        self._sampler_stop.set()
+        with self._lock:
+            if self.recorder is not None:
+                self.last_recording = self.recorder.stop()
+                self.recorder = None
+            if self.acq is not None:
+                self.acq.stop()
+            if self.source is not None:
+                self.source.close()
+            if self.worker is not None:
+                self.worker.stop()
+            if self.ring is not None:
+                self.ring.close()
+            if self.slot is not None:
+                self.slot.close()
+
+    def _sample(self) -> None:
+        while not self._sampler_stop.wait(0.25):
+            ring, w = self.ring, self.worker
+            if ring is not None:
+                try:
+                    self._in_rate.add(self._frames_base + ring.frames_published)
+                except (TypeError, AttributeError):
+                    pass
+            if w is not None:
+                self._work_rate.add(w.stats().get("steps_ingested", 0.0))
+
+    # -- sources ----------------------------------------------------------------------------------
+    def _ring_for(self, src: Source) -> SpikeRing:
+        lay = src.info.layout
+        slot_frames = max(1, src.info.max_block_frames)
+        want = self.settings.ring_seconds * src.info.rate_hz
+        n_slots = max(8, math.ceil(want / slot_frames))
+        blocking = self.settings.replay_mode == "fast"
+        return SpikeRing.create(n_slots, slot_frames, lay.frame_bytes, blocking=blocking)
+
+    def _install(self, src: Source, source_id: str) -> bool:
+        """Make ``src`` the current source; returns True if a new ring was created."""
+        src.open()
+        ring = self.ring
+        new_ring = (
+            ring is None
+            or ring.frame_bytes != src.info.layout.frame_bytes
+            or ring.slot_frames != max(1, src.info.max_block_frames)
+        )
+        if new_ring:
+            if ring is not None:
+                self._frames_base += ring.frames_published
+            ring = self._ring_for(src)
+        self.ring = ring
+        self.source = src
+        self.source_id = source_id
+        self.acq = Acquisition(src, ring)
+        self.acq.start()
+        return new_ring
+
+    def list_sources(self) -> list[dict[str, Any]]:
+        out = []
+        for e in self.catalog.scan().values():
+            d = e.public()
+            d["current"] = e.id == self.source_id
+            out.append(d)
+        return out
+
+    def switch_source(self, source_id: str) -> dict[str, Any]:
+        """Open listed source ``source_id`` and make it current (KeyError if not listed)."""
+        spec: SourceSpec = self.catalog.spec_for(source_id)
+        new = self.catalog.open(spec)  # may raise: the old source keeps running
+        with self._lock:
+            if self.recorder is not None:
+                self.last_recording = self.recorder.stop()
+                self.recorder = None
+            old_acq, old_src, old_ring = self.acq, self.source, self.ring
+            if old_acq is not None:
+                old_acq.stop()
+            if old_src is not None:
+                self._keep_source_counters(old_src)
+                old_src.close()
+            try:
+                new_ring = self._install(new, source_id)
+            except Exception:
+                # could not start the new one: go back to the old source
+                if old_src is not None:
+                    self._install(old_src, self.source_id or "previous")
+                raise
+            if new_ring and self.worker is not None:
+                self.worker.attach(str(self.ring.path), new.info.layout.to_dict())
+                if old_ring is not None:
+                    # the worker re-maps the new ring; the old file can go (mappings persist)
+                    old_ring.close()
+            self.worker.configure(gain=self._effective_gain())
+        return self.source.describe()
+
+    def _keep_source_counters(self, src: Source) -> None:
+        c = src.counters()
+        for k in ("lost_frames", "replay_behind_frames"):
+            self._lost_base[k] = self._lost_base.get(k, 0) + c.get(k, 0)
+
+    def facility(self, kind):
+        src = self.source
+        return None if src is None else src.get_facility(kind)
+
+    def replay(self) -> ReplayControl:
+        ctl = self.facility(ReplayControl)
+        if ctl is None:
+            kind = self.source.info.kind if self.source else "none"
+            raise ConflictError(f"the current source ({kind}) has no replay controls")
+        return ctl
+
+    # -- configuration ----------------------------------------------------------------------------
+    def _effective_gain(self) -> float | None:
+        d = self.config["display"]
+        if d["gain_mode"] == "fixed" and d.get("gain"):
+            return float(d["gain"])
+        if d["gain_mode"] == "recording" and self.source is not None:
+            g = self.source.info.meta.get("gain")
+            if g:
+                return float(g)
+        return None
+
+    def _worker_config(self) -> dict[str, Any]:
+        return {
+            "method": self.config["method"],
+            "params": dict(self.config["params"]),
+            "gain": self._effective_gain(),
+            "max_fps": float(self.config["max_fps"]),
+            "deterministic": self.settings.replay_mode == "fast",
+        }
+
+    def get_config(self) -> dict[str, Any]:
+        return {**self.config, "effective_gain": self._effective_gain()}
+
+    def set_config(
+        self,
+        *,
+        method: str | None = None,
+        params: dict[str, Any] | None = None,
+        display: dict[str, Any] | None = None,
+        max_fps: float | None = None,
+    ) -> dict[str, Any]:
+        """Validate, store and forward to the worker; ValueError names what is wrong."""
+        from cfsr.methods.registry import get_method, resolve_params
+
+        with self._lock:
+            new = dict(self.config)
+            if method is not None:
+                m = get_method(method)
+                new["method"] = m.name
+                base = {} if m.name != self.config["method"] else dict(self.config["params"])
+            else:
+                m = get_method(new["method"])
+                base = dict(self.config["params"])
+            base.update(params or {})
+            new["params"] = resolve_params(m, base)
+            if display is not None:
+                d = {**new["display"], **{k: v for k, v in display.items() if v is not None}}
+                if d.get("gain_mode") == "fixed" and not d.get("gain"):
+                    raise ValueError("display gain_mode 'fixed' needs a gain (spikes/step)")
+                new["display"] = d
+            if max_fps is not None:
+                if not 0 < float(max_fps) <= 240:
+                    raise ValueError(f"max_fps must be in (0, 240], got {max_fps}")
+                new["max_fps"] = float(max_fps)
+            self.config = new
+            if self.worker is not None:
+                self.worker.configure(**self._worker_config())
+            return self.get_config()
+
+    # -- recording --------------------------------------------------------------------------------
+    def start_recording(self, name: str | None, max_frames: int | None = None) -> dict[str, Any]:
+        from service.recorder import Recorder
+
+        with self._lock:
+            if self.recorder is not None and self.recorder.running:
+                raise ConflictError(f"already recording to {self.recorder.path.name}")
+            name = name or datetime.now().strftime("rec-%Y%m%d-%H%M%S")
+            if not _NAME_RE.match(name):
+                raise ValueError(f"recording name {name!r}: use letters, digits, . _ - only")
+            if not name.endswith(".dat"):
+                name += ".dat"
+            folder = self.settings.data_dir / "recordings"
+            folder.mkdir(parents=True, exist_ok=True)
+            path = folder / name
+            if path.exists():
+                raise ConflictError(f"recording {name} already exists")
+            src = self.source
+            assert src is not None and self.ring is not None
+            meta = {
+                "source": src.describe(),
+                "gain": src.info.meta.get("gain"),
+                "method_at_start": self.config["method"],
+            }
+            meta = {k: v for k, v in meta.items() if v is not None}
+            self.recorder = Recorder(
+                self.ring,
+                path,
+                src.info.layout,
+                rate_hz=src.info.rate_hz,
+                meta=meta,
+                max_frames=max_frames,
+            )
+            return self.recorder.describe()
+
+    def stop_recording(self) -> dict[str, Any]:
+        with self._lock:
+            if self.recorder is None:
+                raise ConflictError("not recording")
+            self.last_recording = self.recorder.stop()
+            self.recorder = None
+            return self.last_recording
+
+    def record_status(self) -> dict[str, Any]:
+        r = self.recorder
+        if r is not None:
+            d = r.describe()
+            if not d["recording"]:
+                self.last_recording = d
+                self.recorder = None
+            return d
+        if self.last_recording is not None:
+            return {**self.last_recording, "recording": False}
+        return {"recording": False}
+
+    # -- status -----------------------------------------------------------------------------------
+    def status(self, hub=None) -> dict[str, Any]:
+        src, w, ring = self.source, self.worker, self.ring
+        rate_hz = src.info.rate_hz if src else 40000.0
+        wst = w.stats() if w else {}
+        in_rate = self._in_rate.rate()
+        w_rate = self._work_rate.rate()
+        counters = src.counters() if src else {}
+        source = {
+            "id": self.source_id,
+            "kind": src.info.kind if src else None,
+            "name": src.info.name if src else None,
+            "state": src.state.value if src else None,
+            "capabilities": src.capabilities() if src else [],
+            "width": src.info.layout.width if src else None,
+            "height": src.info.layout.height if src else None,
+            "rate_hz": rate_hz,
+            "counters": {**counters, **(self.acq.stats() if self.acq else {})},
+            "replay": None,
+            "last_error": (src.last_error if src else None)
+            or (self.acq.last_error if self.acq else None),
+        }
+        ctl = src.get_facility(ReplayControl) if src else None
+        if ctl is not None:
+            source["replay"] = ctl.state()
+        cam = src.get_facility(CameraControl) if src else None
+        if cam is not None:
+            try:
+                source["counters"]["device"] = cam.device_status()
+            except Exception as exc:  # noqa: BLE001 - the camera may be gone right now
+                source["counters"]["device"] = {"error": str(exc)}
+        rec = self.record_status()
+        usb_lost = counters.get("lost_frames", 0) if src and src.info.kind == "usb" else 0
+        per_client = hub.client_stats() if hub else []
+        drops = {
+            "usb": int(usb_lost + self._lost_base.get("lost_frames", 0)),
+            "replay": int(
+                counters.get("replay_behind_frames", 0)
+                + self._lost_base.get("replay_behind_frames", 0)
+            ),
+            "ring": int(wst.get("ring_lost_frames", 0)),
+            "worker": int(wst.get("worker_skip_frames", 0)),
+            "clients": int(hub.total_client_drops()) if hub else 0,
+            "recorder": int(rec.get("lost_frames", 0) or 0),
+            "per_client": per_client,
+        }
+        wd = w.describe() if w else {
+            "alive": False, "ready": False, "pid": None, "restarts": 0, "crashes": [],
+            "last_errors": [], "config_version": 0, "applied_version": -1,
+            "heartbeat_age_s": None,
+        }
+        wd.update(
+            {
+                "steps_per_s": w_rate,
+                "real_time_factor": w_rate / rate_hz if rate_hz else 0.0,
+                "frames_out": int(wst.get("frames_out", 0)),
+                "gaps": int(wst.get("gaps", 0)),
+            }
+        )
+        latest = hub.latest if hub else None
+        return {
+            "uptime_s": time.monotonic() - self.started,
+            "source": source,
+            "method": self.config["method"],
+            "params": self.config["params"],
+            "input_steps_per_s": in_rate,
+            "real_time_factor": in_rate / rate_hz if rate_hz else 0.0,
+            "output_fps": hub.fps() if hub else 0.0,
+            "latency_ms": float(wst.get("latency_ms", 0.0)),
+            "compute_ms": float(wst.get("compute_ms", 0.0)),
+            "frame_step": latest.step if latest is not None else None,
+            "drops": drops,
+            "worker": wd,
+            "ring": {
+                "path": str(ring.path) if ring else None,
+                "slots": ring.n_slots if ring else 0,
+                "slot_frames": ring.slot_frames if ring else 0,
+                "capacity_s": (ring.capacity_frames / rate_hz) if ring else 0.0,
+                "frames_published": (self._frames_base + ring.frames_published) if ring else 0,
+                "blocking": bool(ring.blocking) if ring else False,
+            },
+            "clients": len(per_client),
+            "recording": rec,
+        }
+
+    @property
+    def layout(self) -> Layout | None:
+        return self.source.info.layout if self.source else None
+
+    def data_path(self, rel: str) -> Path:
+        return self.settings.data_dir / rel

@@ -1,0 +1,87 @@
+"""Settings of the live service (one object, built by ``cfsr serve`` or by tests)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["Settings", "SourceSpec", "default_data_dir", "cache_dir", "is_loopback"]
+
+
+def cache_dir() -> Path:
+    """``$CFSR_CACHE_DIR``, else ``$XDG_CACHE_HOME/cfsr``, else ``~/.cache/cfsr``."""
+    env = os.environ.get("CFSR_CACHE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "cfsr"
+
+
+def default_data_dir() -> Path:
+    """``$CFSR_DATA_DIR``, else ``$XDG_DATA_HOME/cfsr``, else ``~/.local/share/cfsr``."""
+    env = os.environ.get("CFSR_DATA_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_DATA_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".local" / "share") / "cfsr"
+
+
+def is_loopback(host: str) -> bool:
+    import ipaddress
+
+    if host in ("localhost", "localhost.localdomain"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass
+class SourceSpec:
+    """What to open: ``demo``, ``replay`` (``path``), ``usb`` (``vid``/``pid``) or ``sim``
+    (``scene``)."""
+
+    kind: str = "demo"
+    path: Path | None = None
+    vid: int | None = None
+    pid: int | None = None
+    scene: str | None = None
+
+    @property
+    def id(self) -> str:
+        if self.kind == "replay" and self.path is not None:
+            return f"replay:{self.path.name}"
+        if self.kind == "sim":
+            return f"sim:{self.scene or 'pattern'}"
+        return self.kind
+
+
+@dataclass
+class Settings:
+    host: str = "127.0.0.1"
+    port: int = 8000
+    token: str | None = None
+    data_dir: Path = field(default_factory=default_data_dir)
+    source: SourceSpec = field(default_factory=SourceSpec)
+    speed: float = 1.0
+    loop: bool = True
+    replay_mode: str = "paced"  # "fast": deterministic, as fast as the worker consumes
+    block_frames: int = 256
+    ring_seconds: float = 0.25
+    method: str = "tfp"
+    params: dict = field(default_factory=dict)
+    max_fps: float = 30.0
+    worker_hang_timeout: float = 120.0
+    viewer_dir: Path | None = None
+    test_hooks: bool = False  # expose POST /api/debug/* (tests only)
+    demo_steps: int = int(os.environ.get("CFSR_DEMO_STEPS", "6000"))
+
+    def __post_init__(self) -> None:
+        self.data_dir = Path(self.data_dir).expanduser()
+        if not is_loopback(self.host) and not self.token:
+            raise ValueError(
+                f"binding to {self.host} (not loopback) requires an access token "
+                "(--token or CFSR_TOKEN)"
+            )

@@ -1,0 +1,490 @@
+"""The reconstruction worker process and its supervisor.
+
+The worker maps the spike ring and the latest-frame slot, feeds ring blocks into the single
+:class:`cfsr.StreamingReconstructor`, and publishes the newest reconstruction (8-bit image,
+coarse and fine masks, timings) at most ``max_fps`` times a second. It never waits for anyone:
+when it falls behind it skips the backlog it does not need (counted as ``worker_skip``), and if
+the ring overran it, the ring reader counts those frames (``ring_lost``).
+
+The :class:`WorkerSupervisor` (in the web process) starts it, forwards configuration changes,
+and restarts it after a crash (reported, with backoff) without taking the service down.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import os
+import queue
+import threading
+import time
+import traceback
+from collections import deque
+from typing import Any
+
+__all__ = ["WorkerSupervisor", "worker_main"]
+
+log = logging.getLogger("cfsr.worker")
+
+
+# ----------------------------------------------------------------------------------------------
+# worker process
+# ----------------------------------------------------------------------------------------------
+class _Worker:
+    def __init__(self, slot_path: str, config: dict[str, Any], evt_q: Any) -> None:
+        from service.frameslot import FrameSlot
+
+        self.slot = FrameSlot.attach(slot_path)
+        self.evt_q = evt_q
+        self.config = dict(config)
+        self.ring = None
+        self.reader = None
+        self.rec = None
+        self.layout = None
+        st = self.slot.stats_array()
+        st[:] = 0
+        self.st = st
+        from service.frameslot import STAT_FIELDS
+
+        self.ix = {k: i for i, k in enumerate(STAT_FIELDS)}
+        self.st[self.ix["pid"]] = os.getpid()
+        self.st[self.ix["started"]] = time.monotonic()
+        self._skip_expect_cum: int | None = None
+        self._lost_base = self._overrun_base = self._torn_base = self._gaps_base = 0
+        self._last_out_step: int | None = None
+        self._next_out = 0.0
+        self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
+
+    def bump(self, name: str, by: float = 1.0) -> None:
+        self.st[self.ix[name]] += by
+
+    def put(self, name: str, value: float) -> None:
+        self.st[self.ix[name]] = value
+
+    # -- configuration ------------------------------------------------------------------------
+    def attach(self, ring_path: str, layout: dict[str, Any]) -> None:
+        from cfsr.layout import Layout
+        from driver.ring import SpikeRing
+
+        if self.reader is not None:
+            self._lost_base += self.reader.lost_frames
+            self._overrun_base += self.reader.overruns
+            self._torn_base += self.reader.torn
+            self.reader.close()
+        if self.ring is not None:
+            self.ring.close()
+        self.ring = SpikeRing.attach(ring_path)
+        self.layout = Layout(**layout)
+        self.reader = self.ring.reader(
+            start="latest", register=bool(self.config.get("deterministic")), keep=1
+        )
+        self._skip_expect_cum = None
+        self._build()
+
+    def _build(self) -> None:
+        from cfsr.streaming import StreamingReconstructor
+
+        cfg = self.config
+        if self.rec is None or self.rec.layout != self.layout:
+            if self.rec is not None:
+                self._gaps_base += self.rec.gaps
+            self.rec = StreamingReconstructor(
+                cfg["method"], self.layout, params=cfg.get("params") or {}, slack=1024
+            )
+        else:
+            self.rec.set_method(cfg["method"], params=cfg.get("params") or {})
+        self._last_out_step = None
+        self.put("config_version", cfg.get("version", 0))
+        self.evt_q.put(("config", cfg.get("version", 0), cfg["method"], self.rec.params))
+
+    def configure(self, cfg: dict[str, Any]) -> None:
+        old = self.config
+        self.config = {**old, **cfg}
+        try:
+            if self.layout is not None:
+                self._build()
+        except Exception as exc:  # noqa: BLE001 - report and keep the old method
+            self.evt_q.put(("error", f"config rejected: {exc}"))
+            self.config = old
+            if self.layout is not None:
+                self._build()
+
+    # -- main loop ------------------------------------------------------------------------------
+    def needed_frames(self) -> int:
+        rec = self.rec
+        return rec.before + rec.after + 1
+
+    def ingest(self) -> int:
+        """Move new ring blocks into the reconstructor; returns frames pushed."""
+        reader, rec, ring = self.reader, self.rec, self.ring
+        if reader is None or rec is None:
+            return 0
+        pushed = 0
+        deterministic = bool(self.config.get("deterministic"))
+        if not deterministic:
+            need_blocks = -(-self.needed_frames() // ring.slot_frames) + 1
+            if reader.backlog > need_blocks + 1:
+                self._skip_expect_cum = reader._next_cum
+                reader.skip_to_latest(need_blocks)
+        budget = time.monotonic() + 0.05
+        while True:
+            blk = reader.poll()
+            if blk is None:
+                break
+            if self._skip_expect_cum is not None:
+                self.bump("worker_skip_frames", max(0, blk.cum_before - self._skip_expect_cum))
+                self._skip_expect_cum = None
+            from driver.source import BlockFlags
+
+            if blk.flags & BlockFlags.DISCONTINUITY:
+                rec.reset(blk.index)
+            rec.push(blk.data, blk.index)
+            ok = reader.release(blk)
+            self.put("ring_lost_frames", self._lost_base + reader.lost_frames)
+            self.put("ring_overruns", self._overrun_base + reader.overruns)
+            self.put("ring_torn", self._torn_base + reader.torn)
+            if not ok:
+                rec.reset(blk.index + blk.n_frames)  # the data we pushed was torn
+                continue
+            self.put("gaps", self._gaps_base + rec.gaps)
+            self._arrival.append((blk.index + blk.n_frames, blk.t_host))
+            pushed += blk.n_frames
+            if time.monotonic() > budget:
+                break
+        self.bump("steps_ingested", pushed)
+        return pushed
+
+    def _arrival_of(self, step: int) -> float:
+        for end, t in self._arrival:
+            if end > step:
+                return t
+        return self._arrival[-1][1] if self._arrival else time.monotonic()
+
+    def maybe_output(self) -> bool:
+        rec = self.rec
+        if rec is None:
+            return False
+        now = time.monotonic()
+        if now < self._next_out:
+            return False
+        t = rec.latest_step()
+        if t is None or t == self._last_out_step:
+            return False
+        from cfsr.display import to_display
+
+        t0 = time.perf_counter()
+        out = rec.compute(t)
+        gain = self.config.get("gain")
+        g = float(gain) if gain else _auto_gain(out.rate)
+        img = to_display(out.rate, g)
+        compute_ms = (time.perf_counter() - t0) * 1e3
+        arrival = self._arrival_of(t + rec.after)
+        latency_ms = (time.monotonic() - arrival) * 1e3
+        self.slot.publish(
+            step=t,
+            image=img,
+            masks=out.masks,
+            method=rec.method.name,
+            gain=g,
+            t_arrival=arrival,
+            compute_ms=compute_ms,
+            latency_ms=latency_ms,
+        )
+        self._last_out_step = t
+        self.bump("frames_out")
+        a = 0.2
+        ix = self.ix
+        for name, v in (("compute_ms", compute_ms), ("latency_ms", latency_ms)):
+            old = self.st[ix[name]]
+            self.st[ix[name]] = v if old == 0 else (1 - a) * old + a * v
+        fps = float(self.config.get("max_fps") or 30.0)
+        self._next_out = max(now + 1.0 / fps, time.monotonic() + 0.0)
+        return True
+
+
+def _auto_gain(rate) -> float:
+    from cfsr.display import auto_gain
+
+    return auto_gain(rate)
+
+
+def worker_main(
+    ring_path: str,
+    slot_path: str,
+    layout: dict[str, Any],
+    config: dict[str, Any],
+    cmd_q: Any,
+    evt_q: Any,
+) -> None:
+    """Entry point of the worker process (spawned by :class:`WorkerSupervisor`)."""
+    import signal
+
+    # Ctrl+C reaches the whole process group: the supervisor stops us, not the signal.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        w = _Worker(slot_path, config, evt_q)
+        w.attach(ring_path, layout)
+        evt_q.put(("ready", os.getpid()))
+        consecutive_errors = 0
+        parent = os.getppid()
+        loops = 0
+        while True:
+            w.put("heartbeat", time.monotonic())
+            loops += 1
+            if loops % 200 == 0 and os.getppid() != parent:
+                return  # the service died without stopping us (SIGKILL): do not linger
+            try:
+                while True:
+                    cmd = cmd_q.get_nowait()
+                    op = cmd.get("op")
+                    if op == "stop":
+                        return
+                    if op == "config":
+                        w.configure(cmd["config"])
+                    elif op == "attach":
+                        w.attach(cmd["ring_path"], cmd["layout"])
+                    elif op == "crash":  # test hook: die like a segfault would
+                        os._exit(int(cmd.get("code", 3)))
+                    elif op == "raise":  # test hook: an uncaught Python error
+                        raise RuntimeError(cmd.get("message", "injected worker failure"))
+            except queue.Empty:
+                pass
+            try:
+                pushed = w.ingest()
+                produced = w.maybe_output()
+                consecutive_errors = 0
+            except Exception as exc:  # noqa: BLE001 - a method failure must not kill the worker
+                consecutive_errors += 1
+                w.bump("errors")
+                evt_q.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+                time.sleep(min(1.0, 0.05 * consecutive_errors))
+                continue
+            if not pushed and not produced:
+                time.sleep(0.001)
+    except BaseException as exc:  # noqa: BLE001 - report before dying
+        try:
+            evt_q.put(("crash", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+            time.sleep(0.1)
+        finally:
+            raise
+
+
+# ----------------------------------------------------------------------------------------------
+# supervisor (web process)
+# ----------------------------------------------------------------------------------------------
+class WorkerSupervisor:
+    """Run :func:`worker_main` in a child process; restart it when it dies.
+
+    Parameters
+    ----------
+    slot : FrameSlot
+        The latest-frame slot (created by the web process).
+    config : dict
+        ``method, params, gain, max_fps, deterministic``; changed with :meth:`configure`.
+    hang_timeout : float
+        Seconds without a heartbeat after which the worker is considered hung and restarted.
+    """
+
+    def __init__(
+        self, slot, config: dict[str, Any], *, hang_timeout: float = 120.0
+    ) -> None:
+        self.slot = slot
+        self.config = dict(config)
+        self.config.setdefault("version", 0)
+        self.hang_timeout = hang_timeout
+        self._ctx = mp.get_context("spawn")
+        self._proc: mp.process.BaseProcess | None = None
+        self._cmd_q = None
+        self._evt_q = None
+        self._ring_path: str | None = None
+        self._layout: dict[str, Any] | None = None
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.restarts = 0
+        self.crashes: deque[dict[str, Any]] = deque(maxlen=20)
+        self.errors: deque[dict[str, Any]] = deque(maxlen=20)
+        self.ready = threading.Event()
+        self.applied_version = -1
+        self.applied_params: dict[str, Any] = {}
+        self._started_at = 0.0
+        self._last_message: str | None = None
+        self._counter_base: dict[str, float] = {}
+        self._last_stats: dict[str, float] = {}
+
+    # -- lifecycle --------------------------------------------------------------------------------
+    def start(self, ring_path: str, layout: dict[str, Any]) -> None:
+        self._ring_path, self._layout = ring_path, dict(layout)
+        self._spawn()
+        self._thread = threading.Thread(target=self._monitor, name="cfsr-supervisor", daemon=True)
+        self._thread.start()
+
+    def _spawn(self) -> None:
+        with self._lock:
+            self.ready.clear()
+            self._cmd_q = self._ctx.Queue()
+            self._evt_q = self._ctx.Queue()
+            self._proc = self._ctx.Process(
+                target=worker_main,
+                args=(
+                    self._ring_path,
+                    str(self.slot.path),
+                    self._layout,
+                    self.config,
+                    self._cmd_q,
+                    self._evt_q,
+                ),
+                name="cfsr-worker",
+                daemon=True,
+            )
+            self._proc.start()
+            self._started_at = time.monotonic()
+            self._last_message = None
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        with self._lock:
+            proc = self._proc
+            if proc is not None and proc.is_alive():
+                try:
+                    self._cmd_q.put({"op": "stop"})
+                except (OSError, ValueError):
+                    pass
+                proc.join(timeout)
+                if proc.is_alive():
+                    proc.terminate()
+                    proc.join(2)
+                if proc.is_alive():
+                    proc.kill()
+                    proc.join(2)
+        if self._thread is not None:
+            self._thread.join(2)
+        for q in (self._cmd_q, self._evt_q):
+            if q is not None:
+                q.cancel_join_thread()
+                q.close()
+
+    # -- control ----------------------------------------------------------------------------------
+    def configure(self, **changes: Any) -> int:
+        with self._lock:
+            self.config.update(changes)
+            self.config["version"] = int(self.config.get("version", 0)) + 1
+            self._send({"op": "config", "config": dict(self.config)})
+            return self.config["version"]
+
+    def attach(self, ring_path: str, layout: dict[str, Any]) -> None:
+        with self._lock:
+            self._ring_path, self._layout = ring_path, dict(layout)
+            self._send({"op": "attach", "ring_path": ring_path, "layout": dict(layout)})
+
+    def inject(self, op: str, **kw: Any) -> None:
+        """Test hooks: ``crash`` (hard exit) or ``raise`` (uncaught Python exception)."""
+        self._send({"op": op, **kw})
+
+    def _send(self, cmd: dict[str, Any]) -> None:
+        if self._cmd_q is not None:
+            self._cmd_q.put(cmd)
+
+    @property
+    def pid(self) -> int | None:
+        p = self._proc
+        return p.pid if p is not None and p.is_alive() else None
+
+    @property
+    def alive(self) -> bool:
+        p = self._proc
+        return p is not None and p.is_alive()
+
+    # -- monitor thread ---------------------------------------------------------------------------
+    def _drain(self) -> None:
+        q = self._evt_q
+        while q is not None:
+            try:
+                ev = q.get_nowait()
+            except (queue.Empty, OSError, ValueError, EOFError):
+                return
+            kind = ev[0]
+            if kind == "ready":
+                self.ready.set()
+            elif kind == "config":
+                self.applied_version = ev[1]
+                self.applied_params = dict(ev[3])
+            elif kind == "error":
+                self.errors.append({"time": time.time(), "message": ev[1][:4000]})
+                log.warning("worker error: %s", ev[1].splitlines()[0])
+            elif kind == "crash":
+                self._last_message = ev[1][:4000]
+
+    def _monitor(self) -> None:
+        backoff = 0.5
+        while not self._stop.wait(0.1):
+            self._drain()
+            with self._lock:
+                proc = self._proc
+                if proc is None:
+                    continue
+                alive = proc.is_alive()
+                hb = self.slot.stats().get("heartbeat", 0.0)
+                hung = (
+                    alive
+                    and self.ready.is_set()
+                    and hb > 0
+                    and time.monotonic() - hb > self.hang_timeout
+                )
+                if alive and not hung:
+                    if time.monotonic() - self._started_at > 30:
+                        backoff = 0.5
+                    continue
+                if self._stop.is_set():
+                    return
+                if hung:
+                    proc.kill()
+                    proc.join(2)
+                self._drain()
+                self._carry_counters()
+                crash = {
+                    "time": time.time(),
+                    "exitcode": proc.exitcode,
+                    "reason": "hung (no heartbeat)" if hung else "exited",
+                    "message": self._last_message,
+                }
+                self.crashes.append(crash)
+                log.error("worker died (%s, exit code %s); restarting", crash["reason"],
+                          proc.exitcode)
+            if self._stop.wait(backoff):
+                return
+            backoff = min(5.0, backoff * 2)
+            with self._lock:
+                self.restarts += 1
+                self._spawn()
+
+    def _carry_counters(self) -> None:
+        """Keep cumulative counters across restarts (the new worker starts from zero)."""
+        st = self.slot.stats()
+        for k in ("frames_out", "steps_ingested", "worker_skip_frames", "ring_lost_frames",
+                  "ring_overruns", "ring_torn", "gaps", "errors"):
+            self._counter_base[k] = self._counter_base.get(k, 0.0) + st.get(k, 0.0)
+        self.slot.stats_array()[:] = 0
+
+    def stats(self) -> dict[str, Any]:
+        st = self.slot.stats()
+        for k, base in self._counter_base.items():
+            st[k] = st.get(k, 0.0) + base
+        hb = st.get("heartbeat", 0.0)
+        st["heartbeat_age_s"] = (time.monotonic() - hb) if hb else math.inf
+        return st
+
+    def describe(self) -> dict[str, Any]:
+        st = self.stats()
+        return {
+            "alive": self.alive,
+            "ready": self.ready.is_set(),
+            "pid": self.pid,
+            "restarts": self.restarts,
+            "crashes": list(self.crashes),
+            "last_errors": list(self.errors)[-3:],
+            "config_version": self.config.get("version", 0),
+            "applied_version": self.applied_version,
+            "heartbeat_age_s": None if math.isinf(st["heartbeat_age_s"]) else st["heartbeat_age_s"],
+        }

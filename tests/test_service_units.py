@@ -1,0 +1,103 @@
+"""Unit tests of service parts that need no running server: the WebSocket message format,
+latest-only client queues, the latest-frame slot, settings and the data-folder catalog."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+
+import numpy as np
+import pytest
+
+from service.frameslot import FrameSlot
+from service.hub import ClientQueue, FrameHub, decode_ws_message, encode_ws_message
+from service.settings import Settings, SourceSpec
+
+
+def _slot_with_frame(h=5, w=7, step=2**40 + 3):
+    slot = FrameSlot.create(max_pixels=h * w)
+    img = np.arange(h * w, dtype=np.uint8).reshape(h, w)
+    coarse = np.zeros((h, w), bool)
+    coarse[1, 2] = coarse[4, 6] = True
+    slot.publish(step=step, image=img, masks={"coarse": coarse}, method="csr", gain=0.5,
+                 t_arrival=0.0, compute_ms=1.5, latency_ms=2.5)
+    return slot, img, coarse
+
+
+def test_frame_slot_and_ws_message_roundtrip():
+    slot, img, coarse = _slot_with_frame()
+    try:
+        f = slot.read()
+        assert f is not None and f.step == 2**40 + 3 and f.method == "csr"
+        assert np.array_equal(f.image, img) and set(f.masks) == {"coarse"}
+        assert slot.read(since=f.seq) is None  # nothing newer
+        msg = encode_ws_message(f)
+        assert len(msg) == 64 + 35 + 2 * 5  # header, image, two 35-bit planes
+        d = decode_ws_message(msg)
+        assert d["step"] == 2**40 + 3 and d["method"] == "csr" and d["gain"] == 0.5
+        assert np.array_equal(d["image"], img)
+        assert np.array_equal(d["masks"]["coarse"], coarse) and "fine" not in d["masks"]
+    finally:
+        slot.close()
+
+
+def test_client_queue_is_latest_only():
+    async def go():
+        q = ClientQueue("ws")
+        for i in range(100):
+            q.offer(i)
+        assert q.pending == 1 and q.dropped == 99
+        assert await q.get() == 99
+        assert q.pending == 0
+        task = asyncio.create_task(q.get())
+        await asyncio.sleep(0)
+        q.offer("x")
+        assert await asyncio.wait_for(task, 1) == "x"
+
+    asyncio.run(go())
+
+
+def test_hub_fans_out_once_per_frame():
+    async def go():
+        slot, img, _ = _slot_with_frame()
+        try:
+            hub = FrameHub(slot)
+            a, b = hub.add(ClientQueue("ws")), hub.add(ClientQueue("mjpeg"))
+            assert hub.poll_once() and not hub.poll_once()
+            assert isinstance(await a.get(), bytes)
+            assert (await b.get()).step == slot.read().step
+            hub.remove(a)
+            assert list(hub.clients) == [b.id]
+        finally:
+            slot.close()
+
+    asyncio.run(go())
+
+
+def test_settings_token_rule(tmp_path):
+    with pytest.raises(ValueError, match="token"):
+        Settings(host="0.0.0.0", data_dir=tmp_path)
+    assert Settings(host="0.0.0.0", token="t", data_dir=tmp_path).token == "t"
+    assert Settings(host="localhost", data_dir=tmp_path).host == "localhost"
+
+
+def test_catalog_lists_only_the_data_folder(tmp_path):
+    from replay.pattern import pattern_recording
+    from service.catalog import SourceCatalog
+
+    data = tmp_path / "data"
+    (data / "deep" / "er").mkdir(parents=True)
+    from cfsr.datfile import write_dat
+
+    write_dat(data / "deep" / "er" / "x.dat", pattern_recording(10, height=8, width=8))
+    write_dat(tmp_path / "secret.dat", pattern_recording(10, height=8, width=8))
+    os.symlink(tmp_path / "secret.dat", data / "alias.dat")
+    os.symlink(tmp_path, data / "loop")  # a link to the parent: never followed
+    cat = SourceCatalog(Settings(data_dir=data, source=SourceSpec("demo")))
+    ids = set(cat.scan())
+    assert "file:deep/er/x.dat" in ids
+    assert not any("secret" in i or "alias" in i or "loop" in i for i in ids)
+    assert cat.spec_for("file:deep/er/x.dat").path == (data / "deep/er/x.dat").resolve()
+    for bad in ("file:../secret.dat", "file:alias.dat", str(tmp_path / "secret.dat")):
+        with pytest.raises(KeyError):
+            cat.spec_for(bad)

@@ -1,0 +1,166 @@
+"""The browser viewer in a real headless Chromium (Playwright, system Chromium; never
+``playwright install``): the page loads, frames change, switching the method changes the
+picture, a mask overlay toggles, the heat map shows, and the live figures update."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import require_tier
+
+sys.path.insert(0, str(Path(__file__).parent / "usb"))
+from livehelpers import LiveServer, write_pattern  # noqa: E402
+
+pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
+
+CHROMIUM = os.environ.get("CFSR_CHROMIUM", "/usr/bin/chromium")
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+HASH_JS = """() => {
+  const c = document.getElementById('frame');
+  const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let h = 2166136261;
+  for (let i = 0; i < d.length; i += 1) { h ^= d[i]; h = Math.imul(h, 16777619) >>> 0; }
+  return h;
+}"""
+
+
+@pytest.fixture(scope="module")
+def browser():
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError as exc:
+        require_tier("browser", False, f"python playwright is not installed ({exc})")
+    exe = CHROMIUM if os.path.exists(CHROMIUM) else shutil.which("chromium")
+    require_tier("browser", bool(exe), f"no Chromium at {CHROMIUM} (apt-get install chromium)")
+    pw = sync_playwright().start()
+    try:
+        b = pw.chromium.launch(executable_path=exe, args=ARGS)
+    except Exception as exc:  # noqa: BLE001
+        pw.stop()
+        require_tier("browser", False, f"Chromium did not start: {exc}")
+    yield b
+    b.close()
+    pw.stop()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    d = tmp_path_factory.mktemp("viewer")
+    dat = write_pattern(d / "data" / "pattern.dat", 4000)
+    with LiveServer(["--replay", str(dat), "--data-dir", str(d / "data")]) as s:
+        yield s
+
+
+def _wait(page, js, timeout=60_000, arg=None):
+    page.wait_for_function(js, arg=arg, timeout=timeout)
+
+
+def _stable_hash(page, tries=40):
+    last = page.evaluate(HASH_JS)
+    for _ in range(tries):
+        time.sleep(0.25)
+        h = page.evaluate(HASH_JS)
+        if h == last:
+            return h
+        last = h
+    raise AssertionError("the picture never settled")
+
+
+def _switch_method(page, name):
+    drawn = page.evaluate("window.cfsrViewer.drawn")
+    page.select_option("#method-select", name)
+    page.click("#apply-config")
+    _wait(page, "(m) => window.cfsrViewer.method === m", arg=name, timeout=180_000)
+    _wait(page, "(n) => window.cfsrViewer.drawn > n", arg=drawn)
+
+
+def test_viewer_in_chromium(browser, server, tmp_path):
+    shots = Path(os.environ.get("CFSR_SCREENSHOT_DIR", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    page = browser.new_page(viewport={"width": 1320, "height": 960})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    assert page.title() == "CFSR live viewer"
+
+    # frames arrive and change
+    _wait(page, "() => window.cfsrViewer && window.cfsrViewer.frames >= 3")
+    s0 = page.evaluate("window.cfsrViewer.step")
+    h0 = page.evaluate(HASH_JS)
+    _wait(page, "(s) => window.cfsrViewer.step !== s && window.cfsrViewer.drawn > 3", arg=s0)
+    assert page.evaluate(HASH_JS) != h0 or page.evaluate("window.cfsrViewer.step") != s0
+    assert page.inner_text("#conn") == "live"
+    assert page.inner_text("#frame-method") == "tfp"
+
+    # live figures update
+    _wait(page, "() => window.cfsrViewer.statusUpdates >= 2")
+    n_status = page.evaluate("window.cfsrViewer.statusUpdates")
+    _wait(page, "(n) => window.cfsrViewer.statusUpdates > n", arg=n_status)
+    assert float(page.inner_text("#fig-input").replace(",", "")) > 0
+    assert float(page.inner_text("#fig-rtf")) > 0
+    assert page.inner_text("#drop-ring") != "-"
+    page.screenshot(path=str(shots / "viewer-live.png"), full_page=True)
+
+    # pause the replay so the picture only changes when we change something
+    page.click("#pause")
+    _wait(page, "() => window.cfsrViewer.lastStatus && "
+                "window.cfsrViewer.lastStatus.source.replay.playing === false")
+    h_tfp = _stable_hash(page)
+
+    # switching the method changes the picture
+    _switch_method(page, "tfi")
+    h_tfi = _stable_hash(page)
+    assert h_tfi != h_tfp
+    assert page.inner_text("#frame-method") == "tfi"
+
+    # a mask overlay toggles
+    methods = page.evaluate("window.cfsrViewer.methods")
+    with_mask = [n for n, m in methods.items() if "coarse" in m["masks"]]
+    assert with_mask, "no registered method produces a coarse mask"
+    name = "csr" if "csr" in with_mask else with_mask[0]
+    _switch_method(page, name)
+    _wait(page, "() => window.cfsrViewer.masks.includes('coarse')")
+    # the paused frame must have some dynamic pixels for the overlay to show: step the replay
+    # (256 frames at a time) until the newest frame has a non-empty coarse mask
+    for _ in range(40):
+        if page.evaluate("window.cfsrViewer.maskPixels.coarse") > 0:
+            break
+        drawn = page.evaluate("window.cfsrViewer.drawn")
+        page.click("#step")
+        _wait(page, "(n) => window.cfsrViewer.drawn > n", arg=drawn)
+    assert page.evaluate("window.cfsrViewer.maskPixels.coarse") > 0, "no dynamic pixels found"
+    h_plain = _stable_hash(page)
+    drawn = page.evaluate("window.cfsrViewer.drawn")
+    page.check("#ov-coarse")
+    _wait(page, "(n) => window.cfsrViewer.drawn > n", arg=drawn)
+    h_mask = page.evaluate(HASH_JS)
+    assert h_mask != h_plain, "the coarse overlay did not change the picture"
+    page.screenshot(path=str(shots / "viewer-mask.png"), full_page=True)
+    drawn = page.evaluate("window.cfsrViewer.drawn")
+    page.uncheck("#ov-coarse")
+    _wait(page, "(n) => window.cfsrViewer.drawn > n", arg=drawn)
+    assert page.evaluate(HASH_JS) == h_plain
+
+    # the spike-rate heat map
+    drawn = page.evaluate("window.cfsrViewer.drawn")
+    page.check("input[name=view][value=heat]")
+    _wait(page, "(n) => window.cfsrViewer.drawn > n", arg=drawn)
+    assert page.evaluate(HASH_JS) != h_plain
+    assert page.is_visible("#legend")
+
+    # play again: frames move on
+    page.check("#ov-coarse")
+    page.click("#play")
+    s1 = page.evaluate("window.cfsrViewer.step")
+    _wait(page, "(s) => window.cfsrViewer.step > s", arg=s1)
+    time.sleep(1.5)
+    page.screenshot(path=str(shots / "viewer-heat-mask.png"), full_page=True)
+    assert not errors, errors
+    page.close()

@@ -1,0 +1,172 @@
+"""Helpers for integration tests: start the real service (``cfsr serve``) on a free loopback
+port in a subprocess, talk to it, and stop it. Not a test module (no ``test_`` prefix), and
+this folder is deliberately not a package (a ``usb`` package here would shadow pyusb)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:
+    from cfsr.datfile import write_dat
+    from replay.pattern import pattern_recording
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_dat(path, pattern_recording(steps, **kw))
+    return path
+
+
+class LiveServer:
+    """``cfsr serve ARGS`` on 127.0.0.1:<free port>; ``prefix`` runs it under a wrapper
+    (e.g. ``umockdev-wrapper``) or a launcher script instead of ``python -m service.cli``."""
+
+    def __init__(
+        self,
+        args: list[str],
+        *,
+        env: dict[str, str] | None = None,
+        port: int | None = None,
+        command: list[str] | None = None,
+        token: str | None = None,
+        startup_timeout: float = 180.0,
+    ) -> None:
+        self.port = port or free_port()
+        self.token = token
+        self.url = f"http://127.0.0.1:{self.port}"
+        base = command or [sys.executable, "-m", "service.cli", "serve"]
+        self.cmd = [*base, "--host", "127.0.0.1", "--port", str(self.port), *args]
+        if port is not None and "--port" in args:
+            self.cmd = [*base, *args]
+        self.env = {**os.environ, **(env or {})}
+        self.env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".cache" / "numba"))
+        self.env.setdefault("PYTHONUNBUFFERED", "1")
+        self.startup_timeout = startup_timeout
+        self.log = Path(tempfile.mkstemp(prefix="cfsr-serve-", suffix=".log")[1])
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> LiveServer:
+        fh = open(self.log, "wb")  # noqa: SIM115 - closed with the process
+        self.proc = subprocess.Popen(
+            self.cmd, cwd=REPO, env=self.env, stdout=fh, stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        fh.close()
+        end = time.monotonic() + self.startup_timeout
+        while time.monotonic() < end:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.output()}")
+            try:
+                if httpx.get(self.url + "/healthz", timeout=1).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"server did not become healthy:\n{self.output()}")
+
+    def output(self) -> str:
+        try:
+            return self.log.read_text(errors="replace")[-6000:]
+        except OSError:
+            return ""
+
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
+    def get(self, path: str, **kw) -> httpx.Response:
+        kw.setdefault("timeout", 30)
+        return httpx.get(self.url + path, headers=self.headers(), **kw)
+
+    def put(self, path: str, json=None, **kw) -> httpx.Response:
+        kw.setdefault("timeout", 60)
+        return httpx.put(self.url + path, json=json, headers=self.headers(), **kw)
+
+    def post(self, path: str, json=None, **kw) -> httpx.Response:
+        kw.setdefault("timeout", 60)
+        return httpx.post(self.url + path, json=json, headers=self.headers(), **kw)
+
+    def status(self) -> dict:
+        r = self.get("/api/status")
+        r.raise_for_status()
+        return r.json()
+
+    def wait_for(self, pred, timeout: float = 60.0, what: str = "condition"):
+        end = time.monotonic() + timeout
+        last = None
+        while time.monotonic() < end:
+            last = self.status()
+            if pred(last):
+                return last
+            time.sleep(0.2)
+        raise AssertionError(f"timed out waiting for {what}; last status: {last}")
+
+    def ws_url(self, query: str = "") -> str:
+        q = [query] if query else []
+        if self.token:
+            q.append(f"token={self.token}")
+        return f"ws://127.0.0.1:{self.port}/ws" + ("?" + "&".join(q) if q else "")
+
+    def stop(self) -> None:
+        p = self.proc
+        if p is None or p.poll() is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGINT)
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait(10)
+
+    def __enter__(self) -> LiveServer:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def ws_frames(server: LiveServer, n: int, *, timeout: float = 60.0, method: str | None = None,
+              query: str = ""):
+    """Receive ``n`` decoded frames (optionally only those of ``method``) over the WebSocket."""
+    from websockets.sync.client import connect
+
+    from service.hub import decode_ws_message
+
+    out = []
+    end = time.monotonic() + timeout
+    with connect(server.ws_url(query), max_size=None, open_timeout=30) as ws:
+        while len(out) < n:
+            left = end - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"only {len(out)} of {n} frames ({method}) in {timeout} s")
+            try:
+                msg = ws.recv(timeout=left)
+            except TimeoutError:
+                continue
+            d = decode_ws_message(msg)
+            if method is None or d["method"] == method:
+                out.append(d)
+    return out
+
+
+def sys_path_note() -> str:
+    return str(sys.path[:3])
