@@ -1,0 +1,126 @@
+"""CSR: coarse region-adaptive reconstruction (CFSR paper Eq. 5-7).
+
+1. Coarse distinction (Eq. 5-6, :mod:`cfsr.methods.distinction`): a pixel is dynamic when the
+   ISIs inside the ``T`` steps before t take at least ``theta`` distinct values.
+2. TFI (Eq. 3) on dynamic pixels, TFP (Eq. 4, window ``tfp_window``) on static ones.
+3. ATSR (Eq. 7, :mod:`cfsr.methods.atsr`): the static TFP is scaled by mean TFI / mean TFP over
+   the static region and pasted with the dynamic TFI.
+
+A window with no dynamic pixel needs only TFP: the TFI stage is skipped and the scale is 1
+(there is no dynamic region whose brightness the static one must match).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from cfsr.methods.atsr import atsr_fuse
+from cfsr.methods.distinction import coarse_masks
+from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.tfi import tfi_rates
+from cfsr.methods.tfp import tfp_rate
+
+__all__ = ["csr_frames", "CSR_PARAMS", "csr_window"]
+
+#: Parameters shared by ``csr`` and ``cfsr`` (defaults calibrated on the simulator, see
+#: docs/methods.md; the paper's values are in the ``paper`` preset).
+CSR_PARAMS: dict[str, Param] = {
+    "T": Param(300, "steps", "coarse distinction window T before t (Eq. 5)", minimum=2),
+    "theta": Param(
+        8, "ISI values", "distinct ISI values in T that make a pixel dynamic (Eq. 6)", minimum=1
+    ),
+    "tfp_window": Param(160, "steps", "TFP window w for the static region (Eq. 4)", minimum=1),
+    "tfp_mode": Param(
+        "trailing", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
+    ),
+    "max_isi": Param(200, "steps", "TFI search range each side of t (Eq. 3)", minimum=1),
+}
+
+CSR_PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {"T": 400, "theta": 6, "tfp_window": 160, "tfp_mode": "trailing"},
+    "simulated": {"T": 300, "theta": 10, "tfp_window": 30, "tfp_mode": "trailing"},
+}
+
+#: ``csr`` alone has no fine stage to catch the moving pixels the coarse test misses (bright
+#: moving texture has too few distinct ISIs), so its static TFP defaults to a shorter, centred
+#: window that smears a missed mover less (docs/methods.md, calibration).
+CSR_ONLY_PARAMS: dict[str, Param] = {
+    **CSR_PARAMS,
+    "tfp_window": Param(32, "steps", "TFP window w for the static region (Eq. 4)", minimum=1),
+    "tfp_mode": Param(
+        "centred", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
+    ),
+}
+
+
+def csr_window(p: Mapping[str, Any]) -> tuple[int, int]:
+    """Steps before/after t that one CSR frame needs."""
+    w = p["tfp_window"]
+    if p["tfp_mode"] == "trailing":
+        tb, ta = w - 1, 0
+    else:
+        tb, ta = w // 2, w - w // 2 - 1
+    return max(p["T"] - 1, tb, p["max_isi"]), max(ta, p["max_isi"])
+
+
+def csr_frames(
+    spikes: np.ndarray, centers: Sequence[int], p: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR frames at several indices of one window.
+
+    Parameters
+    ----------
+    spikes : ndarray (n, H, W) uint8 0/1
+        Upright spike frames.
+    centers : sequence of int
+        Indices into ``spikes`` of the output steps.
+    p : mapping
+        ``T``, ``theta``, ``tfp_window``, ``tfp_mode``, ``max_isi`` (see :data:`CSR_PARAMS`).
+
+    Returns
+    -------
+    rates : ndarray (K, H, W) float32
+        CSR rate, spikes per step in [0, 1].
+    masks : ndarray (K, H, W) bool
+        Coarse dynamic masks (Eq. 6).
+    tfp : ndarray (K, H, W) float32
+        The TFP frames (Eq. 4) the static region used, before the ATSR scale.
+    """
+    cs = [int(c) for c in centers]
+    masks = coarse_masks(spikes, cs, p["T"], p["theta"])
+    rates = np.empty(masks.shape, np.float32)
+    tfps = np.empty(masks.shape, np.float32)
+    # TFI only where a frame has dynamic pixels, all of them from one scan per pixel
+    need = [k for k in range(len(cs)) if masks[k].any()]
+    tfis = tfi_rates(spikes, [cs[k] for k in need], max_isi=p["max_isi"])
+    tfi_of = dict(zip(need, tfis, strict=True))
+    for k, c in enumerate(cs):
+        tfp = tfp_rate(spikes, c, window=p["tfp_window"], mode=p["tfp_mode"])
+        tfps[k] = tfp
+        if k in tfi_of:
+            rates[k] = atsr_fuse(tfi_of[k], tfp, masks[k])[0]
+        else:
+            rates[k] = np.clip(tfp, 0.0, 1.0)
+    return rates, masks, tfps
+
+
+def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
+    rates, masks, _ = csr_frames(window, [center], p)
+    return Output(rates[0], {"coarse": masks[0]})
+
+
+register(
+    Method(
+        name="csr",
+        summary="Coarse CFSR: ISI-set distinction, TFI on dynamic / TFP on static, ATSR fusion",
+        params=dict(CSR_ONLY_PARAMS),
+        window=csr_window,
+        compute=_compute,
+        masks=("coarse",),
+        presets=CSR_PRESETS,
+        reference="CFSR paper Eq. 3-7 (coarse stage)",
+    )
+)

@@ -1,0 +1,112 @@
+"""DAISI: difference of adjacent inter-spike intervals, the edge cue of the fine stage.
+
+CFSR paper Eq. 10-14. A static pixel fires with a constant period, so consecutive ISIs agree;
+when a moving edge crosses the pixel its brightness jumps and so does its ISI. With the spikes
+of pixel x at s_1 < s_2 < ... and ISI_k = s_k - s_(k-1):
+
+* a spike at t (t = s_m): ``D(x, t) = |log ISI_m - log ISI_(m-1)|`` (Eq. 10-11);
+* no spike at t (s_(m-1) < t < s_m): the three-ISI form compares the interval containing t with
+  both neighbours, ``D = max(|log ISI_(m+1) - log ISI_m|, |log ISI_m - log ISI_(m-1)|)``
+  (Eq. 12-13);
+* edge where ``D >= phi`` (Eq. 14).
+
+Logarithms are natural. The paper's phi = 4 would need two adjacent ISIs in a ratio of
+e^4 = 55 (e.g. 1 and 55 steps), which real or simulated pixels essentially never produce, so
+phi is a calibrated parameter (docs/methods.md). Note that the two ISIs of any static pixel are
+floor(p) and ceil(p) for period p, so their log ratio is at most log 2 = 0.69 (ISIs 1 and 2):
+any phi above that never marks a noise-free static pixel.
+
+``span`` extends the test to every step in ``[t - span, t + span]`` (an edge that crossed the
+pixel a few steps before or after t still counts); ``span = 0`` is the paper's test at t.
+Pixels without enough spikes in the search range give D = 0 (no evidence of an edge).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+__all__ = ["daisi_strength", "daisi_edges"]
+
+
+@njit(parallel=True, cache=True)
+def _daisi_kernel(spikes, c, span, lo, hi, out):  # pragma: no cover - numba
+    n, h, w = spikes.shape
+    length = hi - lo
+    a_lo = c - span
+    a_hi = c + span
+    for y in prange(h):
+        slab = np.empty((length, w), np.uint8)
+        for t in range(length):
+            for x in range(w):
+                slab[t, x] = spikes[lo + t, y, x]
+        times = np.empty(length + 1, np.int64)
+        for x in range(w):
+            ns = 0
+            for t in range(length):
+                if slab[t, x]:
+                    times[ns] = lo + t
+                    ns += 1
+            best = 0.0
+            # interval k runs from times[k-1] to times[k]; ISI_k = times[k] - times[k-1]
+            for k in range(1, ns):
+                s0 = times[k - 1]
+                s1 = times[k]
+                if s1 < a_lo - 1 or s0 > a_hi:
+                    continue
+                lk = math.log(s1 - s0)
+                # spike at s1 inside the range: compare with the previous interval (Eq. 10-11)
+                if a_lo <= s1 <= a_hi and k >= 2:
+                    d = abs(lk - math.log(times[k - 1] - times[k - 2]))
+                    if d > best:
+                        best = d
+                # a step strictly inside (s0, s1) in the range: three-ISI form (Eq. 12-13)
+                if s1 - s0 >= 2 and s0 + 1 <= a_hi and s1 - 1 >= a_lo:
+                    if k >= 2:
+                        d = abs(lk - math.log(times[k - 1] - times[k - 2]))
+                        if d > best:
+                            best = d
+                    if k + 1 < ns:
+                        d = abs(math.log(times[k + 1] - times[k]) - lk)
+                        if d > best:
+                            best = d
+            out[y, x] = best
+    return out
+
+
+def daisi_strength(spikes: np.ndarray, center: int, *, span: int = 0, max_isi: int = 200):
+    """Largest adjacent-ISI log ratio D (Eq. 10-13) per pixel around step ``center``.
+
+    Parameters
+    ----------
+    spikes : ndarray (n, H, W) uint8 0/1
+        Upright spike frames.
+    center : int
+        Index of t in ``spikes``.
+    span : int
+        Steps each side of t over which D is maximised (0: at t only).
+    max_isi : int
+        Search range beyond each end of ``[t - span, t + span]`` (steps).
+
+    Returns
+    -------
+    ndarray (H, W) float32, >= 0, finite (log units).
+    """
+    n, h, w = spikes.shape
+    if not 0 <= center < n:
+        raise ValueError(f"center {center} outside window of {n} steps")
+    lo = max(0, center - span - max_isi)
+    hi = min(n, center + span + max_isi + 1)
+    out = np.zeros((h, w), np.float32)
+    return _daisi_kernel(
+        np.ascontiguousarray(spikes, dtype=np.uint8), center, int(span), lo, hi, out
+    )
+
+
+def daisi_edges(
+    spikes: np.ndarray, center: int, phi: float, *, span: int = 0, max_isi: int = 200
+) -> np.ndarray:
+    """Edge mask of Eq. 14: ``D >= phi`` (bool ``(H, W)``)."""
+    return daisi_strength(spikes, center, span=span, max_isi=max_isi) >= np.float32(phi)
