@@ -94,3 +94,27 @@ def test_large_absolute_step_indices(method):
     else:  # PatchMatch's random search is seeded by the absolute step: equal up to matching
         np.testing.assert_allclose(a.rate, b.rate, atol=0.25)
         np.testing.assert_array_equal(a.masks["fine"], b.masks["fine"])
+
+
+def test_csr_packed_path_equals_unpacked():
+    """The packed CSR path (used by the library and the live worker) equals csr_frames."""
+    from cfsr._bits import pack_frames
+    from cfsr.layout import Layout
+    from cfsr.methods.csr import csr_frame_packed, csr_frames
+    from cfsr.methods.registry import get_method, resolve_params
+
+    rng = np.random.default_rng(7)
+    t, h, w = 700, 12, 24
+    base = rng.uniform(0.02, 0.6, (h, w))
+    wobble = 0.3 * np.sin(np.arange(t)[:, None, None] / 9.0 + np.arange(w)[None, None, :])
+    rate = np.clip(base[None] * (1 + wobble * (np.arange(w) > 12)), 0, 1)
+    s = (rng.random((t, h, w)) < rate).astype(np.uint8)
+    lay = Layout(w, h)
+    pk = pack_frames(s)
+    p = resolve_params(get_method("csr"), {})
+    for c in (0, 150, 350, 699):
+        rates, masks, _ = csr_frames(s, [c], p)
+        r, m = csr_frame_packed(pk, lay, c, p)
+        np.testing.assert_array_equal(m, masks[0])
+        np.testing.assert_array_equal(r, rates[0])
+    assert masks[0].any() and not masks[0].all()

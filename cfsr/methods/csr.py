@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from cfsr._packed import stored_to_image
 from cfsr.methods.atsr import atsr_fuse
-from cfsr.methods.distinction import coarse_masks
+from cfsr.methods.distinction import coarse_masks, distinct_isi_counts_packed
 from cfsr.methods.registry import Method, Output, Param, register
-from cfsr.methods.tfi import tfi_rates
-from cfsr.methods.tfp import tfp_rate
+from cfsr.methods.tfi import tfi_rate_packed, tfi_rates
+from cfsr.methods.tfp import tfp_rate, tfp_rate_packed
 
-__all__ = ["csr_frames", "CSR_PARAMS", "csr_window"]
+__all__ = ["csr_frames", "csr_frame_packed", "CSR_PARAMS", "csr_window"]
 
 #: Parameters shared by ``csr`` and ``cfsr`` (defaults calibrated on the simulator, see
 #: docs/methods.md; the paper's values are in the ``paper`` preset).
@@ -112,6 +113,25 @@ def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) 
     return Output(rates[0], {"coarse": masks[0]})
 
 
+def csr_frame_packed(
+    packed: np.ndarray, layout: Any, center: int, p: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray]:
+    """One CSR frame and its coarse mask from packed frames: the same numbers as
+    :func:`csr_frames`, without unpacking the window (the live path's budget)."""
+    counts = distinct_isi_counts_packed(packed, center, p["T"])
+    mask = np.ascontiguousarray(stored_to_image(counts, layout)) >= int(p["theta"])
+    tfp = tfp_rate_packed(packed, layout, center, window=p["tfp_window"], mode=p["tfp_mode"])
+    if not mask.any():
+        return np.clip(tfp, 0.0, 1.0), mask
+    tfi = tfi_rate_packed(packed, layout, center, max_isi=p["max_isi"])
+    return atsr_fuse(tfi, tfp, mask)[0], mask
+
+
+def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
+    rate, mask = csr_frame_packed(packed, layout, center, p)
+    return Output(rate, {"coarse": mask})
+
+
 register(
     Method(
         name="csr",
@@ -119,6 +139,7 @@ register(
         params=dict(CSR_ONLY_PARAMS),
         window=csr_window,
         compute=_compute,
+        compute_packed=_compute_packed,
         masks=("coarse",),
         presets=CSR_PRESETS,
         reference="CFSR paper Eq. 3-7 (coarse stage)",

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["distinct_isi_counts", "coarse_masks"]
+__all__ = ["distinct_isi_counts", "distinct_isi_counts_packed", "coarse_masks"]
 
 
 @njit(parallel=True, cache=True)
@@ -116,3 +116,71 @@ def distinct_isi_counts(spikes: np.ndarray, ends, span: int) -> np.ndarray:
 def coarse_masks(spikes: np.ndarray, ends, span: int, theta: int) -> np.ndarray:
     """Coarse dynamic masks (Eq. 6): ``|S_x(t)| >= theta``, bool ``(len(ends), H, W)``."""
     return distinct_isi_counts(spikes, ends, span) >= int(theta)
+
+
+# index of the lowest set bit of each byte value: walks only the spikes of a byte
+_LOW_BIT = np.array([(v & -v).bit_length() - 1 if v else 8 for v in range(256)], np.int64)
+
+
+@njit(parallel=True, cache=True)
+def _distinct_packed_kernel(packed, lo, hi, span, low, out):  # pragma: no cover - numba
+    """Distinct ISI values in frames ``[lo, hi)`` per stored pixel, read from packed bytes.
+
+    Each task owns one cache line of byte columns (512 pixels) and reads it frame by frame, in
+    memory order; only set bits are visited. A per-pixel table of seen ISI values gives the
+    cardinality of Eq. 5 exactly.
+    """
+    nb = packed.shape[1]
+    nchunks = (nb + 63) // 64
+    for c in prange(nchunks):
+        b0 = c * 64
+        m = min(nb, b0 + 64) - b0
+        seen = np.zeros((m * 8, span + 1), np.uint8)
+        last = np.full(m * 8, -1, np.int64)
+        distinct = np.zeros(m * 8, np.int32)
+        for t in range(lo, hi):
+            row = packed[t]
+            for i in range(m):
+                v = np.int64(row[b0 + i])
+                while v:
+                    j = i * 8 + low[v]
+                    v &= v - 1
+                    lk = last[j]
+                    if lk >= 0:
+                        d = t - lk
+                        if seen[j, d] == 0:
+                            seen[j, d] = 1
+                            distinct[j] += 1
+                    last[j] = t
+        for j in range(m * 8):
+            out[b0 * 8 + j] = distinct[j]
+    return out
+
+
+def distinct_isi_counts_packed(packed: np.ndarray, end: int, span: int) -> np.ndarray:
+    """:func:`distinct_isi_counts` at one step, straight from packed frames.
+
+    Parameters
+    ----------
+    packed : ndarray (n, frame_bytes) uint8
+        Packed frames (``.dat`` layout).
+    end : int
+        Index of the evaluation step t in ``packed``.
+    span : int
+        The paper's ``T`` (steps).
+
+    Returns
+    -------
+    counts : ndarray int32, stored pixel order
+        ``|S_x(t)|`` of Eq. 5; view it upright with :func:`cfsr._packed.stored_to_image`.
+    """
+    if span < 1:
+        raise ValueError(f"span T must be >= 1 step, got {span}")
+    n = packed.shape[0]
+    if not 0 <= end < n:
+        raise ValueError(f"evaluation step {end} outside the window of {n} steps")
+    lo, hi = max(0, end - span + 1), end + 1
+    out = np.empty(packed.shape[1] * 8, np.int32)
+    return _distinct_packed_kernel(
+        np.ascontiguousarray(packed, dtype=np.uint8), lo, hi, int(span), _LOW_BIT, out
+    )
