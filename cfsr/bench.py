@@ -25,6 +25,7 @@ __all__ = [
     "method_fps",
     "streaming_state_rtf",
     "format_rows",
+    "time_call",
 ]
 
 #: Display rate that "real time" means for reconstructed frames (frames per second).
@@ -132,7 +133,7 @@ def plot_pareto(
     return path
 
 
-def _timeit(fn: Callable[[], Any], *, min_time: float = 0.5, max_reps: int = 50) -> float:
+def time_call(fn: Callable[[], Any], *, min_time: float = 0.5, max_reps: int = 50) -> float:
     """Median seconds per call after one warm-up call (JIT compile excluded)."""
     fn()
     times = []
@@ -165,7 +166,7 @@ def method_fps(
     t = sr.latest_step()
     if t is None:
         raise ValueError(f"{len(packed)} frames are too few for {method}'s window")
-    sec = _timeit(lambda: sr.compute(t), min_time=min_time)
+    sec = time_call(lambda: sr.compute(t), min_time=min_time)
     fps = 1.0 / sec
     return {"ms_per_frame": sec * 1e3, "fps": fps, "display_rtf": fps / DISPLAY_FPS}
 
@@ -185,7 +186,7 @@ def streaming_state_rtf(
         for i, b in enumerate(blocks):
             ps.update(b, i * block)
 
-    sec = _timeit(run, min_time=min_time, max_reps=20)
+    sec = time_call(run, min_time=min_time, max_reps=20)
     return sum(len(b) for b in blocks) / sec / STEP_RATE_HZ
 
 

@@ -1,0 +1,54 @@
+"""``cfsr bench`` smoke tests (the README's --quick form). No timing is asserted: the figures
+are ratios a person reads; here we check they are produced, finite and well-formed."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from cfsr.bench import format_rows, pareto_front
+from service.cli import main
+
+
+def test_pareto_front():
+    rows = [
+        {"ms_per_frame": 1.0, "psnr_all": 20.0},
+        {"ms_per_frame": 2.0, "psnr_all": 19.0},  # dominated
+        {"ms_per_frame": 3.0, "psnr_all": 25.0},
+        {"ms_per_frame": 4.0, "psnr_all": None},
+    ]
+    assert [r["ms_per_frame"] for r in pareto_front(rows)] == [1.0, 3.0]
+    assert "-" in format_rows(rows, [("psnr_all", "PSNR", ".1f")])
+
+
+@pytest.mark.slow
+def test_bench_quick_accuracy(tmp_path, capsys):
+    assert main(["bench", "--quick", "--no-data", "-q", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "accuracy.json").read_text())
+    names = {r["name"] for r in res["rows"]}
+    assert {"tfi", "tfp", "csr", "cfsr"} <= names
+    for r in res["rows"]:
+        assert math.isfinite(r["psnr_all"]) and r["ms_per_frame"] > 0
+    assert (tmp_path / "pareto.png").stat().st_size > 10_000
+    out = capsys.readouterr().out
+    assert "PSNR all" in out and "pareto.png" in out
+
+
+@pytest.mark.slow
+def test_bench_quick_throughput_json(tmp_path):
+    path = tmp_path / "t.json"
+    assert (
+        main(
+            ["bench", "--throughput", "--quick", "-q", "--out", str(tmp_path), "--json", str(path)]
+        )
+        == 0
+    )
+    res = json.loads(path.read_text())
+    rtf = res["realtime_factor"]
+    assert rtf["streaming_state"] > 0
+    assert rtf["acquisition"] is not None and rtf["acquisition"] > 0, res["acquisition"]
+    assert res["acquisition"]["lost_frames"] == 0
+    for m in ("tfp", "csr", "cfsr"):
+        assert res["fps"][m] > 0
