@@ -136,3 +136,32 @@ def test_console_script_help():
         check=True,
     )
     assert "spikes/step" in r.stdout and "--masks" in r.stdout
+
+
+def test_reconstruct_masks_written_beside_frames(dat, tmp_path):
+    f, s = dat
+    out = tmp_path / "m"
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(f),
+                "-m",
+                "csr",
+                "-t",
+                "450",
+                "--masks",
+                "-o",
+                str(out),
+                "-q",
+                "-p",
+                "T=200,max_isi=100",
+            ]
+        )
+        == 0
+    )
+    mask = np.load(out / "t450_mask_coarse.npy")
+    assert mask.dtype == bool and mask.shape == (16, 32)
+    _, want = cfsr.reconstruct(s, "csr", [450], return_masks=True, T=200, max_isi=100)
+    np.testing.assert_array_equal(mask, want["coarse"][0])
+    assert np.asarray(Image.open(out / "t450_mask_coarse.png")).max() in (0, 255)
