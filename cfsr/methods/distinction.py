@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cfsr.methods._spiketimes import pixel_times, row_slab
+
 __all__ = ["distinct_isi_counts", "distinct_isi_counts_packed", "coarse_masks"]
 
 
@@ -35,18 +37,11 @@ def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
     length = max(0, hi - lo)
     for y in prange(h):
         # copy the row's time slab once: the per-pixel scans below then stay in cache
-        slab = np.empty((length, w), np.uint8)
-        for t in range(length):
-            for x in range(w):
-                slab[t, x] = spikes[lo + t, y, x]
+        slab = row_slab(spikes, lo, length, y)
         times = np.empty(length + 1, np.int64)
         hist = np.zeros(span + 1, np.int32)
         for x in range(w):
-            ns = 0
-            for t in range(length):
-                if slab[t, x]:
-                    times[ns] = lo + t
-                    ns += 1
+            ns = pixel_times(slab, x, lo, times)
             a = 0  # first spike inside the window
             b = 0  # one past the last spike inside the window
             distinct = 0

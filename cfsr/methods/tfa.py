@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr.methods._spiketimes import pixel_times, row_slab
 from cfsr.methods.registry import Method, Output, Param, register
 
 __all__ = ["adaptive_rate", "adaptive_rates"]
@@ -44,18 +45,11 @@ def _adaptive_kernel(spikes, centers, n_int, mw, lo, hi, refractory, out):
     length = hi - lo
     kc = centers.shape[0]
     for y in prange(h):
-        slab = np.empty((length, w), np.uint8)
-        for t in range(length):
-            for x in range(w):
-                slab[t, x] = spikes[lo + t, y, x]
+        slab = row_slab(spikes, lo, length, y)
         times = np.empty(length + 1, np.int64)
         gaps = np.empty(n_int + 1, np.int64)
         for x in range(w):
-            ns = 0
-            for t in range(length):
-                if slab[t, x]:
-                    times[ns] = lo + t
-                    ns += 1
+            ns = pixel_times(slab, x, lo, times)
             for kk in range(kc):
                 c = centers[kk]
                 c_lo = max(0, c - mw)

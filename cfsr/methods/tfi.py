@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._packed import isi_packed, stored_to_image
+from cfsr.methods._spiketimes import pixel_times, row_slab
 from cfsr.methods.registry import Method, Output, Param, register
 
 __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
@@ -117,17 +118,10 @@ def _isi_multi_kernel(spikes, centers, m, lo, hi, out):  # pragma: no cover - nu
     length = hi - lo
     kc = centers.shape[0]
     for y in prange(h):
-        slab = np.empty((length, w), np.uint8)
-        for t in range(length):
-            for x in range(w):
-                slab[t, x] = spikes[lo + t, y, x]
+        slab = row_slab(spikes, lo, length, y)
         times = np.empty(length + 1, np.int64)
         for x in range(w):
-            ns = 0
-            for t in range(length):
-                if slab[t, x]:
-                    times[ns] = lo + t
-                    ns += 1
+            ns = pixel_times(slab, x, lo, times)
             for k in range(kc):
                 c = centers[k]
                 a = max(0, c - m)

@@ -1,0 +1,35 @@
+"""Gathering one pixel's spike times from a window: shared by the per-pixel ISI kernels.
+
+The ISI-based kernels (TFI at many centers, TFA, DAISI, the coarse distinction) all walk each
+pixel's spike times. Reading ``spikes[t, y, x]`` pixel by pixel strides through memory, so a
+row's time slab is copied once (contiguous x) and each pixel's times are collected from it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["row_slab", "pixel_times"]
+
+
+@njit(cache=True, inline="always")
+def row_slab(spikes, lo, length, y):  # pragma: no cover - numba
+    """Frames ``lo .. lo+length-1`` of row ``y`` as a ``(length, W)`` uint8 copy."""
+    w = spikes.shape[2]
+    slab = np.empty((length, w), np.uint8)
+    for t in range(length):
+        for x in range(w):
+            slab[t, x] = spikes[lo + t, y, x]
+    return slab
+
+
+@njit(cache=True, inline="always")
+def pixel_times(slab, x, lo, times):  # pragma: no cover - numba
+    """Write the absolute steps of column ``x``'s spikes into ``times``; return how many."""
+    ns = 0
+    for t in range(slab.shape[0]):
+        if slab[t, x]:
+            times[ns] = lo + t
+            ns += 1
+    return ns
