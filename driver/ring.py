@@ -61,6 +61,26 @@ def ring_dir(nbytes: int) -> Path:
     return Path(tempfile.gettempdir())
 
 
+def create_shared_file(
+    prefix: str, size: int, directory: str | os.PathLike | None = None
+) -> tuple[Path, mmap.mmap]:
+    """Create and map a new ``PREFIX-<pid>-...`` shared-memory file of ``size`` bytes.
+
+    Files left by a killed process are removed first; the name is unique per process and call.
+    Used by the spike ring and the service's frame slot.
+    """
+    d = Path(directory) if directory is not None else ring_dir(size)
+    remove_stale_files(d, prefix)
+    path = d / f"{prefix}-{os.getpid()}-{next(_names)}-{time.monotonic_ns() % 10**9}"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+    try:
+        os.ftruncate(fd, size)
+        mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
+    finally:
+        os.close(fd)
+    return path, mm
+
+
 def remove_stale_files(directory: str | os.PathLike, prefix: str) -> int:
     """Delete ``PREFIX-<pid>-*`` files whose creating process is gone (a killed service)."""
     n = 0
@@ -156,15 +176,7 @@ class SpikeRing:
                 f"{n_slots}, {slot_frames}, {frame_bytes}"
             )
         size = cls.nbytes_for(n_slots, slot_frames, frame_bytes)
-        d = Path(directory) if directory is not None else ring_dir(size)
-        remove_stale_files(d, "cfsr-ring")
-        path = d / f"cfsr-ring-{os.getpid()}-{next(_names)}-{time.monotonic_ns() % 10**9}"
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-        try:
-            os.ftruncate(fd, size)
-            mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-        finally:
-            os.close(fd)
+        path, mm = create_shared_file("cfsr-ring", size, directory)
         hdr = np.frombuffer(mm, np.int64, _HEADER_BYTES // 8, 0)
         hdr[_H_NSLOTS], hdr[_H_SLOTFRAMES], hdr[_H_FRAMEBYTES] = n_slots, slot_frames, frame_bytes
         hdr[_H_BLOCKING] = int(blocking)

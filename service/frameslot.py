@@ -10,10 +10,8 @@ from __future__ import annotations
 
 import mmap
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
-from itertools import count
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +45,6 @@ STAT_FIELDS = (
     "config_version",
     "started",
 )
-_names = count()
 
 
 @dataclass
@@ -90,19 +87,9 @@ class FrameSlot:
     @classmethod
     def create(cls, max_pixels: int = 1024 * 1024, directory: str | None = None) -> FrameSlot:
         size = _PAYLOAD_OFF + 3 * max_pixels
-        d = Path(directory or ("/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()))
-        if os.environ.get("CFSR_RING_DIR"):
-            d = Path(os.environ["CFSR_RING_DIR"])
-        from driver.ring import remove_stale_files
+        from driver.ring import create_shared_file
 
-        remove_stale_files(d, "cfsr-frame")
-        path = d / f"cfsr-frame-{os.getpid()}-{next(_names)}-{time.monotonic_ns() % 10**9}"
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-        try:
-            os.ftruncate(fd, size)
-            mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-        finally:
-            os.close(fd)
+        path, mm = create_shared_file("cfsr-frame", size, directory)
         hdr = np.frombuffer(mm, np.int64, _HDR // 8, 0)
         hdr[_MAXPIX] = max_pixels
         hdr[_M] = _MAGIC
