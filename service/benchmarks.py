@@ -71,9 +71,24 @@ def _drain(ring, seconds: float, source_counters) -> dict[str, Any]:
     return {"frames_per_s": rate, "realtime_factor": rate / STEP_RATE_HZ, "consumer": got}
 
 
-def _usb(seconds: float) -> dict[str, Any]:
+def _measure(src, frame_bytes: int, fpb: int, seconds: float) -> tuple[dict[str, Any], int]:
+    """Acquire from an opened source into a fresh ring for ``seconds``; close both."""
     from driver.acquisition import Acquisition
     from driver.ring import SpikeRing
+
+    ring = SpikeRing.create(64, fpb, frame_bytes)
+    acq = Acquisition(src, ring)
+    acq.start()
+    try:
+        res = _drain(ring, seconds, src.counters)
+    finally:
+        acq.stop()
+        src.close()
+        ring.close()
+    return res, int(acq.lost_frames)
+
+
+def _usb(seconds: float) -> dict[str, Any]:
     from driver.usb import UsbCameraSource
     from replay import umockdev_camera as U
     from replay.camera_model import CameraModel
@@ -84,48 +99,30 @@ def _usb(seconds: float) -> dict[str, Any]:
         with U.EmulatedCamera(model):
             src = UsbCameraSource(read_timeout_ms=500)
             src.open()
-            ring = SpikeRing.create(64, src.fpb, rec.layout.frame_bytes)
-            acq = Acquisition(src, ring)
-            acq.start()
-            try:
-                res = _drain(ring, seconds, src.counters)
-            finally:
-                acq.stop()
-                src.close()
-                ring.close()
+            block_bytes = int(src.block_bytes)
+            res, lost = _measure(src, rec.layout.frame_bytes, src.fpb, seconds)
             with model.lock:
                 dropped = int(getattr(model, "dropped_total", 0))
-            res.update(
-                source="emulated USB camera (umockdev, real libusb + pyusb), unpaced",
-                lost_frames=int(acq.lost_frames) + dropped,
-                block_bytes=int(src.block_bytes),
-            )
-            return res
+    res.update(
+        source="emulated USB camera (umockdev, real libusb + pyusb), unpaced",
+        lost_frames=lost + dropped,
+        block_bytes=block_bytes,
+    )
+    return res
 
 
 def _replay(seconds: float) -> dict[str, Any]:
-    from driver.acquisition import Acquisition
-    from driver.ring import SpikeRing
     from replay.device import ReplayDevice
 
     with tempfile.TemporaryDirectory() as d:
         rec = _recording(Path(d))
         dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=256)
         dev.open()
-        ring = SpikeRing.create(64, 256, rec.layout.frame_bytes)
-        acq = Acquisition(dev, ring)
-        acq.start()
-        try:
-            res = _drain(ring, seconds, dev.counters)
-        finally:
-            acq.stop()
-            dev.close()
-            ring.close()
-        res.update(
-            source="replay device (memory-mapped .dat), unpaced; umockdev unavailable",
-            lost_frames=int(acq.lost_frames),
-        )
-        return res
+        res, lost = _measure(dev, rec.layout.frame_bytes, 256, seconds)
+    res.update(
+        source="replay device (memory-mapped .dat), unpaced; umockdev unavailable", lost_frames=lost
+    )
+    return res
 
 
 def acquisition_throughput(seconds: float = 5.0) -> dict[str, Any]:
