@@ -122,17 +122,21 @@ def _distinct_packed_kernel(packed, lo, hi, span, low, out):  # pragma: no cover
     """Distinct ISI values in frames ``[lo, hi)`` per stored pixel, read from packed bytes.
 
     Each task owns one cache line of byte columns (512 pixels) and reads it frame by frame, in
-    memory order; only set bits are visited. A per-pixel table of seen ISI values gives the
-    cardinality of Eq. 5 exactly.
+    memory order, visiting only set bits. ISI values below 64 steps (nearly all of them) are
+    kept as bits of one uint64 per pixel, so the count is a popcount at the end; the few longer
+    ones (at most ``span // 64`` per pixel) go to a short list.
     """
     nb = packed.shape[1]
     nchunks = (nb + 63) // 64
+    maxbig = span // 64 + 1
+    one = np.uint64(1)
     for c in prange(nchunks):
         b0 = c * 64
         m = min(nb, b0 + 64) - b0
-        seen = np.zeros((m * 8, span + 1), np.uint8)
+        small = np.zeros(m * 8, np.uint64)
+        big = np.empty((m * 8, maxbig), np.int64)
+        nbig = np.zeros(m * 8, np.int64)
         last = np.full(m * 8, -1, np.int64)
-        distinct = np.zeros(m * 8, np.int32)
         for t in range(lo, hi):
             row = packed[t]
             for i in range(m):
@@ -141,14 +145,27 @@ def _distinct_packed_kernel(packed, lo, hi, span, low, out):  # pragma: no cover
                     j = i * 8 + low[v]
                     v &= v - 1
                     lk = last[j]
-                    if lk >= 0:
-                        d = t - lk
-                        if seen[j, d] == 0:
-                            seen[j, d] = 1
-                            distinct[j] += 1
                     last[j] = t
+                    if lk < 0:
+                        continue
+                    d = t - lk
+                    if d < 64:
+                        small[j] |= one << np.uint64(d)
+                        continue
+                    nbj = nbig[j]
+                    for q in range(nbj):
+                        if big[j, q] == d:
+                            break
+                    else:
+                        big[j, nbj] = d
+                        nbig[j] = nbj + 1
         for j in range(m * 8):
-            out[b0 * 8 + j] = distinct[j]
+            x = small[j]
+            cnt = 0
+            while x:
+                x &= x - one
+                cnt += 1
+            out[b0 * 8 + j] = cnt + nbig[j]
     return out
 
 
