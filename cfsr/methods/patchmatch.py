@@ -12,9 +12,10 @@ current best at radii ``max_radius, max_radius/2, ..., 1`` (random search). The 
 differences (SSD) over the patch stops early once it exceeds the current best. Only the masked
 pixels are visited; the NNFs of the targets are independent and run in parallel.
 
-Randomness comes from a counter-based hash of (seed, target, pixel, iteration, radius), so the
-result does not depend on thread scheduling: the same window always gives the same frame, which
-keeps the streaming and whole-array paths identical.
+Randomness comes from a counter-based hash of (seed, target, the pixel's full-frame position,
+iteration, radius), so the result does not depend on thread scheduling (the same window always
+gives the same frame, which keeps the streaming and whole-array paths identical) nor on which
+other pixels are matched (a crop and the whole frame draw alike).
 
 Matching happens on a *guide* (a lightly smoothed TFI): matching the raw TFI locks onto its
 quantisation noise. The averaged values are the raw TFI rates at the matched positions.
@@ -62,39 +63,70 @@ def _clamp(v, lo, hi):  # pragma: no cover - numba
     return lo if v < lo else (hi if v > hi else v)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _ssd(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     """SSD of the patch at (y, x) in ``ref`` and (ty, tx) in ``tgt``; stops above ``limit``.
 
-    Rows/columns ``y - patch//2 + 1 .. y + patch//2`` (6 x 6 for patch 6), clamped at borders.
+    ``ref`` and ``tgt`` are edge-padded by :func:`_pad` (``patch//2 - 1`` rows/columns before,
+    the rest after), so the patch rows/columns ``y - patch//2 + 1 .. y + patch//2`` of the
+    unpadded image (6 x 6 for patch 6, clamped at borders) are ``y .. y + patch - 1`` here:
+    no per-pixel clamping in the inner loop, the same values and summation order.
     """
-    h, w = ref.shape
-    lo = patch // 2 - 1
     s = 0.0
-    for dy in range(-lo, patch - lo):
-        ry = _clamp(y + dy, 0, h - 1)
-        qy = _clamp(ty + dy, 0, h - 1)
-        for dx in range(-lo, patch - lo):
-            rx = _clamp(x + dx, 0, w - 1)
-            qx = _clamp(tx + dx, 0, w - 1)
-            d = ref[ry, rx] - tgt[qy, qx]
+    for dy in range(patch):
+        rr = ref[y + dy]
+        qr = tgt[ty + dy]
+        for dx in range(patch):
+            d = rr[x + dx] - qr[tx + dx]
             s += d * d
         if s > limit:
             return s
     return s
 
 
+@njit(cache=True, inline="always")
+def _ssd6(ref, tgt, y, x, ty, tx, limit):  # pragma: no cover - numba
+    """:func:`_ssd` for the default 6 x 6 patch (constant bounds: the loops unroll)."""
+    s = 0.0
+    for dy in range(6):
+        rr = ref[y + dy]
+        qr = tgt[ty + dy]
+        for dx in range(6):
+            d = rr[x + dx] - qr[tx + dx]
+            s += d * d
+        if s > limit:
+            return s
+    return s
+
+
+@njit(cache=True, inline="always")
+def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
+    if patch == 6:
+        return _ssd6(ref, tgt, y, x, ty, tx, limit)
+    return _ssd(ref, tgt, y, x, ty, tx, patch, limit)
+
+
+def _pad(img: np.ndarray, patch: int) -> np.ndarray:
+    """Edge-replicate padding of the last two axes for :func:`_ssd` (float32, contiguous)."""
+    lo = patch // 2 - 1
+    hi = patch - 1 - lo
+    width = [(0, 0)] * (img.ndim - 2) + [(lo, hi), (lo, hi)]
+    return np.ascontiguousarray(np.pad(img, width, mode="edge"), dtype=np.float32)
+
+
 @njit(parallel=True, cache=True)
-def _nnf_kernel(ref, targets, ys, xs, index, patch, iters, max_r, seed, off, cost):
+def _nnf_kernel(ref, targets, ys, xs, keys, index, patch, iters, max_r, seed, off, cost):
     # pragma: no cover - numba
-    n_t, h, w = targets.shape
+    n_t = targets.shape[0]
+    h = targets.shape[1] - patch + 1
+    w = targets.shape[2] - patch + 1
     m = ys.shape[0]
     for i in prange(n_t):
         tgt = targets[i]
         for j in range(m):
             off[i, j, 0] = 0
             off[i, j, 1] = 0
-            cost[i, j] = _ssd(ref, tgt, ys[j], xs[j], ys[j], xs[j], patch, np.inf)
+            cost[i, j] = _cost(ref, tgt, ys[j], xs[j], ys[j], xs[j], patch, np.inf)
         for it in range(iters):
             fwd = it % 2 == 0
             d = -1 if fwd else 1
@@ -120,7 +152,7 @@ def _nnf_kernel(ref, targets, ys, xs, index, patch, iters, max_r, seed, off, cos
                         continue
                     ty = _clamp(y + cy, 0, h - 1)
                     tx = _clamp(x + cx, 0, w - 1)
-                    c = _ssd(ref, tgt, y, x, ty, tx, patch, best)
+                    c = _cost(ref, tgt, y, x, ty, tx, patch, best)
                     if c < best:
                         best = c
                         by = ty - y
@@ -128,11 +160,11 @@ def _nnf_kernel(ref, targets, ys, xs, index, patch, iters, max_r, seed, off, cos
                 # random search around the current best at halving radii
                 r = max_r
                 while r >= 1:
-                    ry, rx = _rand2(seed, i, j, it * 64 + r, r)
+                    ry, rx = _rand2(seed, i, keys[j], it * 64 + r, r)
                     ty = _clamp(y + by + ry, 0, h - 1)
                     tx = _clamp(x + bx + rx, 0, w - 1)
                     if ty - y != by or tx - x != bx:
-                        c = _ssd(ref, tgt, y, x, ty, tx, patch, best)
+                        c = _cost(ref, tgt, y, x, ty, tx, patch, best)
                         if c < best:
                             best = c
                             by = ty - y
@@ -153,6 +185,7 @@ def nnf_multi(
     iters: int = 3,
     max_radius: int = 16,
     seed: int = 0,
+    origin: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Nearest-neighbour fields from ``ref`` to each of ``targets`` on the ``mask`` pixels.
 
@@ -172,6 +205,9 @@ def nnf_multi(
         Largest random-search radius (pixels).
     seed : int
         Seed of the counter-based random search (any int; reduced modulo 2**64).
+    origin : (int, int)
+        Position of ``ref[0, 0]`` in the full frame: each pixel's random draws are keyed by
+        its full-frame position, so a crop and the whole frame draw alike.
 
     Returns
     -------
@@ -193,11 +229,27 @@ def nnf_multi(
     xs = xs.astype(np.int64)
     index = np.full(ref.shape, -1, np.int64)
     index[ys, xs] = np.arange(ys.size)
+    # the random search of a pixel is keyed by its position in the full frame, so the same
+    # pixel draws the same offsets whatever else is matched (crop or whole frame)
+    keys = (ys + int(origin[0])) * np.int64(1 << 20) + (xs + int(origin[1]))
     off = np.zeros((targets.shape[0], ys.size, 2), np.int32)
     cost = np.zeros((targets.shape[0], ys.size), np.float32)
     if ys.size and targets.shape[0]:
         s = np.uint64(int(seed) % (1 << 64))
-        _nnf_kernel(ref, targets, ys, xs, index, patch, iters, max_radius, s, off, cost)
+        _nnf_kernel(
+            _pad(ref, patch),
+            _pad(targets, patch),
+            ys,
+            xs,
+            keys,
+            index,
+            patch,
+            iters,
+            max_radius,
+            s,
+            off,
+            cost,
+        )
     return ys, xs, off, cost
 
 
@@ -263,17 +315,25 @@ def patchmatch_fuse(
     max_radius: int = 16,
     h: float = 0.0,
     seed: int = 0,
+    origin: tuple[int, int] = (0, 0),
 ) -> np.ndarray:
     """Refine ``ref_raw`` on ``mask`` by PatchMatch over the target frames.
 
     Matching uses the guides; the averaged values are the raw rates. Pixels outside ``mask``
-    keep ``ref_raw``. Returns float32 ``(H, W)``.
+    keep ``ref_raw``. ``origin``: see :func:`nnf_multi`. Returns float32 ``(H, W)``.
     """
     out = np.array(ref_raw, dtype=np.float32, copy=True)
     if raw.shape[0] == 0 or not np.any(mask):
         return out
     ys, xs, off, cost = nnf_multi(
-        ref_guide, guides, mask, patch=patch, iters=iters, max_radius=max_radius, seed=seed
+        ref_guide,
+        guides,
+        mask,
+        patch=patch,
+        iters=iters,
+        max_radius=max_radius,
+        seed=seed,
+        origin=origin,
     )
     out[ys, xs] = fuse_matches(ref_raw, raw, ys, xs, off, cost, patch=patch, h=h)
     return out
