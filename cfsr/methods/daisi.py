@@ -28,6 +28,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from cfsr.methods._spiketimes import pixel_times, row_slab
+
 __all__ = ["daisi_strength", "daisi_edges"]
 
 
@@ -38,17 +40,10 @@ def _daisi_kernel(spikes, c, span, lo, hi, out):  # pragma: no cover - numba
     a_lo = c - span
     a_hi = c + span
     for y in prange(h):
-        slab = np.empty((length, w), np.uint8)
-        for t in range(length):
-            for x in range(w):
-                slab[t, x] = spikes[lo + t, y, x]
+        slab = row_slab(spikes, lo, length, y)
         times = np.empty(length + 1, np.int64)
         for x in range(w):
-            ns = 0
-            for t in range(length):
-                if slab[t, x]:
-                    times[ns] = lo + t
-                    ns += 1
+            ns = pixel_times(slab, x, lo, times)
             best = 0.0
             # interval k runs from times[k-1] to times[k]; ISI_k = times[k] - times[k-1]
             for k in range(1, ns):
