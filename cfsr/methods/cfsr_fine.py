@@ -49,6 +49,7 @@ from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.tfa import grow_span
 from cfsr.methods.tfp import tfp_span
 
 __all__ = ["fine_mask", "fine_stage", "cfsr_window"]
@@ -392,26 +393,7 @@ def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, isi, tfa):
                     if f1 - f0 < 2:
                         tfa[kk, yy, x] = 1.0 / (c_hi - c_lo + 1)
                         continue
-                    if ip < f0:
-                        a, b = f0, f0 + 1
-                    elif ip >= f1 - 1:
-                        a, b = f1 - 2, f1 - 1
-                    else:
-                        a, b = ip, ip + 1
-                    while b - a < thr:
-                        can_l = a > f0
-                        can_r = b < f1 - 1
-                        if can_l and can_r:
-                            if cc - tv[a - 1] <= tv[b + 1] - cc:
-                                a -= 1
-                            else:
-                                b += 1
-                        elif can_l:
-                            a -= 1
-                        elif can_r:
-                            b += 1
-                        else:
-                            break
+                    a, b = grow_span(tv, f0, f1, ip, cc, thr)
                     tfa[kk, yy, x] = (b - a) / (tv[b] - tv[a])
 
 

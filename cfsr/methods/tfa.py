@@ -30,6 +30,37 @@ from cfsr.methods.registry import Method, Output, Param, register
 __all__ = ["adaptive_rate", "adaptive_rates"]
 
 
+@njit(cache=True, inline="always")
+def grow_span(times, f0, f1, ip, c, n_int):  # pragma: no cover - numba
+    """Spike indices ``(a, b)`` spanning ``n_int`` intervals around step ``c``.
+
+    Starts from the interval containing ``c`` (spike ``ip`` is the last one <= c), or the one
+    nearest ``c`` at an open end, and adds the neighbouring interval closer to ``c`` until
+    ``n_int`` intervals are covered or ``times[f0:f1]`` runs out.
+    """
+    if ip < f0:
+        a, b = f0, f0 + 1
+    elif ip >= f1 - 1:
+        a, b = f1 - 2, f1 - 1
+    else:
+        a, b = ip, ip + 1
+    while b - a < n_int:
+        can_l = a > f0
+        can_r = b < f1 - 1
+        if can_l and can_r:
+            if c - times[a - 1] <= times[b + 1] - c:
+                a -= 1
+            else:
+                b += 1
+        elif can_l:
+            a -= 1
+        elif can_r:
+            b += 1
+        else:
+            break
+    return a, b
+
+
 @njit(parallel=True, cache=True)
 def _adaptive_kernel(spikes, centers, n_int, mw, lo, hi, refractory, out):
     # pragma: no cover - numba
@@ -60,27 +91,7 @@ def _adaptive_kernel(spikes, centers, n_int, mw, lo, hi, refractory, out):
                     out[kk, y, x] = 1.0 / (c_hi - c_lo + 1)
                     continue
                 ip = np.searchsorted(times[:ns], c, side="right") - 1  # last spike <= c
-                # start from the interval containing c, or the one nearest c at an open end
-                if ip < f0:
-                    a, b = f0, f0 + 1
-                elif ip >= f1 - 1:
-                    a, b = f1 - 2, f1 - 1
-                else:
-                    a, b = ip, ip + 1
-                while b - a < n_int:
-                    can_l = a > f0
-                    can_r = b < f1 - 1
-                    if can_l and can_r:
-                        if c - times[a - 1] <= times[b + 1] - c:
-                            a -= 1
-                        else:
-                            b += 1
-                    elif can_l:
-                        a -= 1
-                    elif can_r:
-                        b += 1
-                    else:
-                        break
+                a, b = grow_span(times, f0, f1, ip, c, n_int)
                 if refractory > 0.0 and b - a >= 2:
                     m = b - a
                     for k in range(m):
