@@ -17,7 +17,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ChunkTask", "plan_chunks", "run_chunk", "run_batch", "write_output"]
+__all__ = [
+    "ChunkTask",
+    "dask_client",
+    "plan_chunks",
+    "run_chunk",
+    "run_batch",
+    "write_output",
+]
 
 
 @dataclass(frozen=True)
@@ -88,7 +95,8 @@ def run_chunk(task: ChunkTask, on_frame: Callable[[], None] | None = None) -> di
     }
 
 
-def _client(cluster: str):
+def dask_client(cluster: str):
+    """``(client, local_cluster_or_None)`` for ``"local"`` or a scheduler address."""
     from dask.distributed import Client, LocalCluster
 
     if cluster in ("", "local"):
@@ -117,7 +125,7 @@ def run_batch(
         return [run_chunk(task, tick) for task in tasks]
     from dask.distributed import as_completed
 
-    client, local = _client(cluster)
+    client, local = dask_client(cluster)
     try:
         futures = [client.submit(run_chunk, task, pure=False) for task in tasks]
         for fut in as_completed(futures):

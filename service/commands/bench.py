@@ -175,16 +175,11 @@ def _accuracy(args: argparse.Namespace, bar) -> dict[str, Any]:
     bar.reset(total=len(jobs) + 2)
     bar.set_description("scenes")
     if args.cluster:
-        from dask.distributed import Client, LocalCluster, as_completed
+        from dask.distributed import as_completed
 
-        local = (
-            LocalCluster(
-                n_workers=min(4, os.cpu_count() or 1), threads_per_worker=1, dashboard_address=None
-            )
-            if args.cluster == "local"
-            else None
-        )
-        client = Client(local if local else args.cluster)
+        from cfsr.batch import dask_client
+
+        client, local = dask_client(args.cluster)
         try:
             for fut in as_completed([client.submit(_scene_rows, j, pure=False) for j in jobs]):
                 rows.extend(fut.result())
