@@ -52,3 +52,27 @@ def test_bench_quick_throughput_json(tmp_path):
     assert res["acquisition"]["lost_frames"] == 0
     for m in ("tfp", "csr", "cfsr"):
         assert res["fps"][m] > 0
+
+
+@pytest.mark.slow
+def test_bench_on_a_local_dask_cluster_gives_the_same_scores(tmp_path):
+    base = [
+        "bench",
+        "--quick",
+        "--no-data",
+        "-q",
+        "--methods",
+        "tfi,tfp:window=32",
+        "--scenes",
+        "disk,car",
+        "--steps",
+        "700",
+    ]
+    assert main(base + ["--out", str(tmp_path / "one")]) == 0
+    assert main(base + ["--out", str(tmp_path / "many"), "--cluster"]) == 0
+
+    def scores(d):
+        rows = json.loads((tmp_path / d / "accuracy.json").read_text())["rows"]
+        return {(r["method"], r["scene"]): (r["psnr_all"], r["ssim"]) for r in rows}
+
+    assert scores("one") == scores("many")
