@@ -108,3 +108,38 @@ def test_every_method_is_finite_bounded_and_drift_free(method):
         assert r.min() >= 0 and r.max() <= 1.0 + 1e-6, (method, t, r.min(), r.max())
     np.testing.assert_array_equal(outs[times[0]].rate, outs[times[1]].rate)
     np.testing.assert_array_equal(outs[times[0]].rate, outs[times[2]].rate)
+
+
+def _extreme_values(p: cfsr.methods.Param) -> list:
+    if p.choices is not None:
+        return list(p.choices)
+    if isinstance(p.default, bool):
+        return [True, False]
+    if not isinstance(p.default, (int, float)):
+        return [p.default]
+    lo = p.minimum if p.minimum is not None else 0
+    hi = p.default * 4 if p.default else 8
+    if p.maximum is not None:
+        hi = min(hi, p.maximum)
+    kind = type(p.default)
+    return [kind(lo), kind(hi)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", sorted(cfsr.methods()))
+def test_extreme_parameters_stay_finite_and_bounded(method):
+    """Each parameter at its smallest allowed value and at 4x its default (or its maximum),
+    one at a time, on a scene with dark, saturated and ordinary pixels."""
+    m = cfsr.get_method(method)
+    rng = np.random.default_rng(3)
+    rate = rng.uniform(0.0, 0.8, (H, W))
+    rate[0, :4], rate[1, :4] = 0.0, 1.0
+    spikes = (rng.random((900, H, W)) < rate).astype(np.uint8)
+    checked = 0
+    for name, p in m.params.items():
+        for v in _extreme_values(p):
+            r = cfsr.reconstruct(spikes, method, [450], **{name: v})
+            assert np.all(np.isfinite(r)), (method, name, v)
+            assert r.min() >= 0 and r.max() <= 1.0 + 1e-6, (method, name, v, r.min(), r.max())
+            checked += 1
+    assert checked >= len(m.params)

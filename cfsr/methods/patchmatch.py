@@ -67,9 +67,10 @@ def _clamp(v, lo, hi):  # pragma: no cover - numba
 def _ssd(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     """SSD of the patch at (y, x) in ``ref`` and (ty, tx) in ``tgt``; stops above ``limit``.
 
-    ``ref`` and ``tgt`` are edge-padded by :func:`_pad` (``patch//2 - 1`` rows/columns before,
-    the rest after), so the patch rows/columns ``y - patch//2 + 1 .. y + patch//2`` of the
-    unpadded image (6 x 6 for patch 6, clamped at borders) are ``y .. y + patch - 1`` here:
+    ``ref`` and ``tgt`` are edge-padded by :func:`_pad` (``(patch - 1) // 2`` rows/columns
+    before, the rest after), so the patch rows/columns ``y - (patch - 1) // 2 .. y + patch // 2``
+    of the unpadded image (6 x 6 for patch 6, centred for odd sizes, clamped at borders) are
+    ``y .. y + patch - 1`` here:
     no per-pixel clamping in the inner loop, the same values and summation order.
     """
     s = 0.0
@@ -108,7 +109,9 @@ def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
 
 def _pad(img: np.ndarray, patch: int) -> np.ndarray:
     """Edge-replicate padding of the last two axes for :func:`_ssd` (float32, contiguous)."""
-    lo = patch // 2 - 1
+    # (patch - 1) // 2 before: the 2-before/3-after 6 x 6 patch of the paper's default, and a
+    # centred window for odd sizes (patch // 2 - 1 went negative for a 1 x 1 patch)
+    lo = (patch - 1) // 2
     hi = patch - 1 - lo
     width = [(0, 0)] * (img.ndim - 2) + [(lo, hi), (lo, hi)]
     return np.ascontiguousarray(np.pad(img, width, mode="edge"), dtype=np.float32)
