@@ -101,3 +101,17 @@ def test_catalog_lists_only_the_data_folder(tmp_path):
     for bad in ("file:../secret.dat", "file:alias.dat", str(tmp_path / "secret.dat")):
         with pytest.raises(KeyError):
             cat.spec_for(bad)
+
+
+def test_serve_on_a_busy_port_fails_with_one_clear_line(capsys):
+    import socket
+
+    from service.cli import main
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        assert main(["serve", "--port", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot listen on 127.0.0.1:{port}" in err and "--port" in err

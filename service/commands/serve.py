@@ -75,8 +75,26 @@ def build_settings(args: argparse.Namespace):
     )
 
 
+def _check_port(host: str, port: int) -> None:
+    """Fail early, with one clear line, when the address is taken (before the demo is made and
+    the worker started)."""
+    import socket
+
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise OSError(
+                f"cannot listen on {host}:{port} ({exc.strerror}); another server may be "
+                f"running there: stop it or pass --port"
+            ) from None
+
+
 def run(args: argparse.Namespace) -> int:
     settings = build_settings(args)  # refuses a non-loopback bind without a token
+    _check_port(settings.host, settings.port)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     if settings.source.kind == "demo":
         from service.demo import ensure_demo
