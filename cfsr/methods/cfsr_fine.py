@@ -37,7 +37,6 @@ history scan (steps 1 and 3, the TFP and TFI at t) and the PatchMatch-region sca
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -46,6 +45,7 @@ from numba import njit, prange
 
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
+from cfsr.methods.daisi import daisi_from_times
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.registry import Method, Output, Param, register
@@ -238,36 +238,6 @@ def _isi_from_times(tv, ns, ip, a, b):  # pragma: no cover - numba
     return b - a + 1
 
 
-@njit(cache=True, inline="always")
-def _daisi_from_times(tv, a_lo, a_hi):  # pragma: no cover - numba
-    """DAISI strength (the rule of ``daisi._daisi_kernel``) over the spike steps ``tv``."""
-    ns = tv.shape[0]
-    best = 0.0
-    # only the intervals with s1 >= a_lo - 1 and s0 <= a_hi can count
-    k0 = max(1, np.searchsorted(tv, a_lo - 1, side="left"))
-    k1 = min(ns, np.searchsorted(tv, a_hi, side="right") + 1)
-    for k in range(k0, k1):
-        s0 = tv[k - 1]
-        s1 = tv[k]
-        if s1 < a_lo - 1 or s0 > a_hi:
-            continue
-        lk = math.log(s1 - s0)
-        if a_lo <= s1 <= a_hi and k >= 2:
-            d = abs(lk - math.log(tv[k - 1] - tv[k - 2]))
-            if d > best:
-                best = d
-        if s1 - s0 >= 2 and s0 + 1 <= a_hi and s1 - 1 >= a_lo:
-            if k >= 2:
-                d = abs(lk - math.log(tv[k - 1] - tv[k - 2]))
-                if d > best:
-                    best = d
-            if k + 1 < ns:
-                d = abs(math.log(tv[k + 1] - tv[k]) - lk)
-                if d > best:
-                    best = d
-    return best
-
-
 @njit(parallel=True, cache=True)
 def _history_kernel(
     packed,
@@ -354,7 +324,7 @@ def _history_kernel(
                 )
                 f0 = np.searchsorted(tv[:ns], d_lo, side="left")
                 f1 = np.searchsorted(tv[:ns], d_hi, side="left")
-                daisi[y, x] = _daisi_from_times(tv[f0:f1], c - dspan, c + dspan)
+                daisi[y, x] = daisi_from_times(tv[f0:f1], c - dspan, c + dspan)
 
 
 @njit(parallel=True, cache=True)

@@ -30,7 +30,43 @@ from numba import njit, prange
 
 from cfsr.methods._spiketimes import pixel_times, row_slab
 
-__all__ = ["daisi_strength", "daisi_edges"]
+__all__ = ["daisi_strength", "daisi_edges", "daisi_from_times"]
+
+
+@njit(cache=True, inline="always")
+def daisi_from_times(tv, a_lo, a_hi):  # pragma: no cover - numba
+    """Largest adjacent-ISI log ratio D (Eq. 10-13) for steps in ``[a_lo, a_hi]``.
+
+    ``tv`` holds one pixel's spike steps in order; interval k runs from ``tv[k-1]`` to ``tv[k]``.
+    A spike inside the range compares its interval with the previous one (Eq. 10-11); a step
+    strictly inside an interval uses the three-ISI form (Eq. 12-13). Shared by
+    :func:`daisi_strength` and the fused CFSR pass.
+    """
+    ns = tv.shape[0]
+    best = 0.0
+    # only the intervals with s1 >= a_lo - 1 and s0 <= a_hi can count
+    k0 = max(1, np.searchsorted(tv, a_lo - 1, side="left"))
+    k1 = min(ns, np.searchsorted(tv, a_hi, side="right") + 1)
+    for k in range(k0, k1):
+        s0 = tv[k - 1]
+        s1 = tv[k]
+        if s1 < a_lo - 1 or s0 > a_hi:
+            continue
+        lk = math.log(s1 - s0)
+        if a_lo <= s1 <= a_hi and k >= 2:
+            d = abs(lk - math.log(tv[k - 1] - tv[k - 2]))
+            if d > best:
+                best = d
+        if s1 - s0 >= 2 and s0 + 1 <= a_hi and s1 - 1 >= a_lo:
+            if k >= 2:
+                d = abs(lk - math.log(tv[k - 1] - tv[k - 2]))
+                if d > best:
+                    best = d
+            if k + 1 < ns:
+                d = abs(math.log(tv[k + 1] - tv[k]) - lk)
+                if d > best:
+                    best = d
+    return best
 
 
 @njit(parallel=True, cache=True)
@@ -44,29 +80,7 @@ def _daisi_kernel(spikes, c, span, lo, hi, out):  # pragma: no cover - numba
         times = np.empty(length + 1, np.int64)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)
-            best = 0.0
-            # interval k runs from times[k-1] to times[k]; ISI_k = times[k] - times[k-1]
-            for k in range(1, ns):
-                s0 = times[k - 1]
-                s1 = times[k]
-                if s1 < a_lo - 1 or s0 > a_hi:
-                    continue
-                lk = math.log(s1 - s0)
-                # spike at s1 inside the range: compare with the previous interval (Eq. 10-11)
-                if a_lo <= s1 <= a_hi and k >= 2:
-                    d = abs(lk - math.log(times[k - 1] - times[k - 2]))
-                    if d > best:
-                        best = d
-                # a step strictly inside (s0, s1) in the range: three-ISI form (Eq. 12-13)
-                if s1 - s0 >= 2 and s0 + 1 <= a_hi and s1 - 1 >= a_lo:
-                    if k >= 2:
-                        d = abs(lk - math.log(times[k - 1] - times[k - 2]))
-                        if d > best:
-                            best = d
-                    if k + 1 < ns:
-                        d = abs(math.log(times[k + 1] - times[k]) - lk)
-                        if d > best:
-                            best = d
+            best = daisi_from_times(times[:ns], a_lo, a_hi)
             out[y, x] = best
     return out
 
