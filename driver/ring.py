@@ -81,6 +81,30 @@ def create_shared_file(
     return path, mm
 
 
+def attach_shared_file(path: str | os.PathLike) -> mmap.mmap:
+    """Map an existing shared-memory file made by :func:`create_shared_file`, read-write."""
+    fd = os.open(Path(path), os.O_RDWR)
+    try:
+        return mmap.mmap(
+            fd, os.fstat(fd).st_size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE
+        )
+    finally:
+        os.close(fd)
+
+
+def release_shared_file(mm: mmap.mmap, path: Path, owner: bool) -> None:
+    """Unmap ``mm``; the creating process also deletes the file."""
+    try:
+        mm.close()
+    except BufferError:
+        pass  # a consumer still holds a view; the mapping goes with the process
+    if owner:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
+
+
 def remove_stale_files(directory: str | os.PathLike, prefix: str) -> int:
     """Delete ``PREFIX-<pid>-*`` files whose creating process is gone (a killed service)."""
     n = 0
@@ -189,14 +213,7 @@ class SpikeRing:
 
     @classmethod
     def attach(cls, path: str | os.PathLike) -> SpikeRing:
-        p = Path(path)
-        fd = os.open(p, os.O_RDWR)
-        try:
-            size = os.fstat(fd).st_size
-            mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-        finally:
-            os.close(fd)
-        return cls(p, mm, owner=False)
+        return cls(Path(path), attach_shared_file(path), owner=False)
 
     def close(self) -> None:
         """Unmap (and, in the creating process, delete the file)."""
@@ -205,16 +222,8 @@ class SpikeRing:
         if self.owner:
             self._hdr[_H_CLOSED] = 1
         self._hdr = self._shdr = self._sthost = self._data = None  # type: ignore[assignment]
-        try:
-            self._mm.close()
-        except BufferError:
-            pass  # a consumer still holds a view; the mapping goes with the process
+        release_shared_file(self._mm, self.path, self.owner)
         self._mm = None  # type: ignore[assignment]
-        if self.owner:
-            try:
-                self.path.unlink()
-            except FileNotFoundError:
-                pass
 
     # -- state ------------------------------------------------------------------------------
     @property

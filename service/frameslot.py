@@ -98,29 +98,19 @@ class FrameSlot:
 
     @classmethod
     def attach(cls, path: str | os.PathLike) -> FrameSlot:
-        p = Path(path)
-        fd = os.open(p, os.O_RDWR)
-        try:
-            mm = mmap.mmap(fd, os.fstat(fd).st_size, mmap.MAP_SHARED)
-        finally:
-            os.close(fd)
-        return cls(p, mm, owner=False)
+        from driver.ring import attach_shared_file
+
+        return cls(Path(path), attach_shared_file(path), owner=False)
 
     def close(self) -> None:
         if self._mm is None:
             return
         self._i = self._f = self._stats = self._img = None  # type: ignore[assignment]
         self._masks = {}
-        try:
-            self._mm.close()
-        except BufferError:
-            pass
+        from driver.ring import release_shared_file
+
+        release_shared_file(self._mm, self.path, self.owner)
         self._mm = None  # type: ignore[assignment]
-        if self.owner:
-            try:
-                self.path.unlink()
-            except FileNotFoundError:
-                pass
 
     # -- writer (worker) ----------------------------------------------------------------------
     def publish(
