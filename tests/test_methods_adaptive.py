@@ -56,7 +56,7 @@ def test_history_scan_equals_stand_alone_kernels(trial):
     rates, masks, _ = csr_frames(s, cs, {**p, "tfp_window": p["mog_window"]})
     np.testing.assert_array_equal(got["rates"], rates)
     np.testing.assert_array_equal(got["coarse"], masks[-1])
-    np.testing.assert_array_equal(got["tfi"], tfi_rate(s, c, max_isi=p["max_isi"]))
+    np.testing.assert_array_equal(got["tfi"](), tfi_rate(s, c, max_isi=p["max_isi"]))
     want_tfp = tfp_rate(s, c, window=p["tfp_window"], mode=p["tfp_mode"])
     np.testing.assert_array_equal(got["tfp"], want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
@@ -172,3 +172,38 @@ def test_packed_path_equals_frames_path_with_head_columns(fliplr):
     np.testing.assert_array_equal(a.rate, b.rate)
     for k in a.masks:
         np.testing.assert_array_equal(a.masks[k], b.masks[k])
+
+
+def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_kernels(
+    monkeypatch,
+):
+    """Integrate-and-fire pixels of constant brightness (a static scene): every pixel is
+    proven static by the first pass, and the results still equal the stand-alone kernels."""
+    rng = np.random.default_rng(7)
+    n, h, w = 900, 6, 70
+    rate = rng.uniform(0.02, 0.9, (h, w))
+    acc = rng.uniform(0, 1, (h, w))
+    s = np.zeros((n, h, w), np.uint8)
+    for t in range(n):
+        acc += rate
+        s[t] = acc >= 1.0
+        acc -= s[t]
+    p = _params()
+    c = 800
+
+    def second_pass(*args):
+        raise AssertionError("the second pass ran on a static window")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(cf, "_dynamic_kernel", second_pass)
+        got = cf._history(cf._Spikes.from_frames(s), c, p)
+    assert not got["coarse"].any()
+    cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
+    rates, masks, _ = csr_frames(s, cs, {**p, "tfp_window": p["mog_window"]})
+    assert not masks.any()
+    np.testing.assert_array_equal(got["rates"], rates)
+    np.testing.assert_array_equal(got["tfi"](), tfi_rate(s, c, max_isi=p["max_isi"]))
+    want_tfp = tfp_rate(s, c, window=p["tfp_window"], mode=p["tfp_mode"])
+    np.testing.assert_array_equal(got["tfp"], want_tfp)
+    want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
+    np.testing.assert_array_equal(got["daisi"], want_d)

@@ -43,9 +43,19 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr._words import (
+    count_range,
+    next_spike,
+    prefix_counts,
+    prev_spike,
+    range_times,
+    row_words,
+    word_times,
+)
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
 from cfsr.methods.daisi import daisi_from_times
+from cfsr.methods.distinction import distinct_in_words
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.registry import Method, Output, Param, register
@@ -120,17 +130,19 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
 #
 # Every per-pixel quantity of the pipeline is a function of the pixel's spike times. The
 # stand-alone kernels (coarse distinction, TFI at many centers, TFP, DAISI, TFA) each gather
-# those times again from the unpacked window, which costs more than the arithmetic; the two
-# scans below gather them once per pixel and compute, with the same rules and the same
-# numbers as those kernels (tests/test_methods_adaptive.py checks equality):
+# those times again from the unpacked window, which costs more than the arithmetic; the
+# scans below read the packed window once per pixel as spike words (:mod:`cfsr._words`:
+# 64 steps per uint64, bit scans and popcounts instead of per-step loops) and compute, with
+# the same rules and the same numbers as those kernels (tests/test_methods_adaptive.py
+# checks equality):
 #
-# * :func:`_history_kernel` (whole frame): the CSR history of MOG (distinct-ISI counts, TFI and
-#   TFP counts at the K history steps), DAISI at t and the static TFP count at t;
-# * :func:`_pm_kernel` (only the pixels PatchMatch can read): TFI and TFA at the PatchMatch
+# * :func:`_static_kernel` (whole frame): proves pixels static in every history frame (one
+#   walk of their spikes), the TFP counts of the history and at t, DAISI at t -- all that a
+#   static window needs;
+# * :func:`_dynamic_kernel` (whole frame, only when some pixel is not proven static): TFI at
+#   the K history steps and the exact distinct-ISI counts of the unproven pixels;
+# * :func:`_pm_kernel` (only the tiles PatchMatch can read): TFI and TFA at the PatchMatch
 #   steps.
-
-
-_CHUNK = 64  # pixels per column chunk of the scans (a multiple of 8: byte-aligned reads)
 
 
 class _Spikes:
@@ -172,51 +184,6 @@ class _Spikes:
 
 
 @njit(cache=True, inline="always")
-def _gather_row(packed, geo, lo, hi, y, x0, x1, times, ns):  # pragma: no cover - numba
-    """Spike steps in ``[lo, hi)`` of image pixels ``x0 .. x1-1`` of row ``y``, read from
-    packed frames: ``times[x - x0, :ns[x - x0]]``.
-
-    Reads the window in memory order (frame by frame, one stored row), without branches.
-    """
-    sw, height, flipud, xo, xs = geo[0], geo[1], geo[2], geo[3], geo[4]
-    yy = np.int64(y)
-    count = np.int64(x1 - x0)
-    # stored bits of the row's pixels x0 .. x1-1 in stored (memory) order
-    if xs > 0:
-        sc0 = xo + np.int64(x0)
-    else:
-        sc0 = xo - np.int64(x1 - 1)
-    q0 = ((height - 1 - yy) if flipud else yy) * sw + sc0
-    aligned = (q0 & 7) == 0
-    nbytes = (count + 7) >> 3
-    bits = np.empty(nbytes * 8, np.uint8)  # the row's bits of one frame, stored order
-    for k in range(count):
-        ns[k] = 0
-    for t in range(lo, hi):
-        frame = packed[t]
-        if aligned:
-            b0 = q0 >> 3
-            for k in range(nbytes):
-                v = frame[b0 + k]
-                for b in range(8):
-                    bits[8 * k + b] = (v >> b) & 1
-        else:
-            for k in range(count):
-                q = q0 + k
-                bits[k] = (frame[q >> 3] >> (q & 7)) & 1
-        # branch-free scatter: always write, advance only on a spike
-        if xs > 0:
-            for k in range(count):
-                times[k, ns[k]] = t
-                ns[k] += bits[k]
-        else:
-            for k in range(count):
-                j = count - 1 - k
-                times[j, ns[j]] = t
-                ns[j] += bits[k]
-
-
-@njit(cache=True, inline="always")
 def _isi_from_times(tv, ns, ip, a, b):  # pragma: no cover - numba
     """TFI interval at a step c with search range ``[a, b)`` (the rule of ``tfi._isi_one``);
     ``ip`` indexes the last spike ``<= c`` (-1: none)."""
@@ -238,93 +205,156 @@ def _isi_from_times(tv, ns, ip, a, b):  # pragma: no cover - numba
     return b - a + 1
 
 
+@njit(cache=True, inline="always")
+def _isi_words(words, r, lo, c, a, b):  # pragma: no cover - numba
+    """:func:`_isi_from_times` at step ``c`` for word row ``r``, by bit scans (no spike list)."""
+    ip = prev_spike(words, r, lo, c, a)
+    i_n = next_spike(words, r, lo, c + 1, b)
+    if ip >= 0 and i_n >= 0:
+        return i_n - ip
+    if ip >= 0:
+        bound = b - ip
+        pp = prev_spike(words, r, lo, ip - 1, a)
+        return max(bound, ip - pp) if pp >= 0 else bound
+    if i_n >= 0:
+        bound = i_n - a + 1
+        nn = next_spike(words, r, lo, i_n + 1, b)
+        return max(bound, nn - i_n) if nn >= 0 else bound
+    return b - a + 1
+
+
+@njit(cache=True, inline="always")
+def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc):  # pragma: no cover - numba
+    """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
+    ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``."""
+    a_lo = c - dspan
+    a_hi = c + dspan
+    nl = 0
+    p1 = prev_spike(words, r, lo, a_lo - 2, d_lo)
+    if p1 >= 0:
+        p2 = prev_spike(words, r, lo, p1 - 1, d_lo)
+        if p2 >= 0:
+            loc[nl] = p2
+            nl += 1
+        loc[nl] = p1
+        nl += 1
+    nl += range_times(words, r, lo, max(d_lo, a_lo - 1), min(d_hi, a_hi + 1), loc[nl:])
+    n1 = next_spike(words, r, lo, a_hi + 1, d_hi)
+    if n1 >= 0:
+        loc[nl] = n1
+        nl += 1
+        n2 = next_spike(words, r, lo, n1 + 1, d_hi)
+        if n2 >= 0:
+            loc[nl] = n2
+            nl += 1
+    return daisi_from_times(loc[:nl], a_lo, a_hi)
+
+
 @njit(parallel=True, cache=True)
-def _history_kernel(
+def _static_kernel(
     packed,
     geo,
     lo,
     hi,
-    ends,
+    u_lo,
+    u_hi,
     span,
-    m,
+    theta,
     ta,
     tb,
+    pa,
+    pb,
     c,
     dspan,
     d_lo,
     d_hi,
-    pa,
-    pb,
-    counts,
-    isi,
+    ub,
     cnt,
-    daisi,
     pcnt,
+    daisi,
 ):  # pragma: no cover - numba
-    n = packed.shape[0]
-    h, w = counts.shape[1:]
-    k_count = ends.shape[0]
-    length = hi - lo
+    """First pass of the history scan: what a static window needs, nothing more.
+
+    Per pixel, on words of ``[lo, hi)``: ``ub``, the distinct ISIs of the union
+    ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at ``theta``): every window's
+    ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
+    the TFP counts of the history frames (``cnt``) and at t (``pcnt``); DAISI at t.
+    """
+    h, w = ub.shape
+    k_count = ta.shape[0]
+    nw = (hi - lo + 63) >> 6
     for y in prange(h):
-        # columns in chunks: the chunk's spike times stay in cache between gather and use
-        times = np.empty((_CHUNK, length + 1), np.int32)
-        ns_row = np.empty(_CHUNK, np.int64)
+        words = np.empty((w + 80, nw), np.uint64)
+        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        loc = np.empty(2 * dspan + 8, np.int64)
+        prefix = np.empty(nw + 1, np.int64)
+        base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        for x in range(w):
+            r = base + step * x
+            ub[y, x] = distinct_in_words(words, r, nw, lo, u_lo, u_hi, span, big, theta)
+            prefix_counts(words, r, nw, prefix)
+            for k in range(k_count):
+                cnt[k, y, x] = count_range(words, r, lo, prefix, ta[k], tb[k])
+            pcnt[y, x] = count_range(words, r, lo, prefix, pa, pb)
+            daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc)
+
+
+@njit(parallel=True, cache=True)
+def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi):
+    # pragma: no cover - numba
+    """Second pass, run only when some pixel was not proven static: the TFI interval at
+    every history step (the ATSR scale of Eq. 7 needs it on the static region too) and the
+    exact distinct-ISI counts (sliding histogram, distinction.py) where ``ub >= theta``;
+    elsewhere ``counts`` is ``ub``, below ``theta`` like every window's own count."""
+    n = packed.shape[0]
+    h, w = ub.shape
+    k_count = ends.shape[0]
+    nw = (hi - lo + 63) >> 6
+    u_lo = max(0, ends[0] - span + 1)
+    u_hi = ends[k_count - 1] + 1
+    for y in prange(h):
+        words = np.empty((w + 80, nw), np.uint64)
+        tv = np.empty(hi - lo + 1, np.int64)
         hist = np.zeros(span + 1, np.int32)
-        for cx in range(0, w, _CHUNK):
-            cx1 = min(w, cx + _CHUNK)
-            _gather_row(packed, geo, lo, hi, y, cx, cx1, times, ns_row)
-            for x in range(cx, cx1):
-                tv = times[x - cx]
-                ns = ns_row[x - cx]
-                # distinct ISI values in (e - span, e] (sliding histogram, distinction.py)
-                a = 0
-                b = 0
-                distinct = 0
+        base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        for x in range(w):
+            r = base + step * x
+            for k in range(k_count):
+                e = ends[k]
+                isi[k, y, x] = _isi_words(words, r, lo, e, max(0, e - m), min(n, e + m + 1))
+            if ub[y, x] < theta:
                 for k in range(k_count):
-                    e = ends[k]
-                    s = e - span + 1
-                    # an ISI longer than span never lies inside one window: not counted, so
-                    # not removed either; the count itself is branch-free
-                    while b < ns and tv[b] <= e:
-                        if b > a:
-                            d = tv[b] - tv[b - 1]
-                            if d <= span:
-                                distinct += hist[d] == 0
-                                hist[d] += 1
-                        b += 1
-                    while a < b and tv[a] < s:
-                        if a + 1 < b:
-                            d = tv[a + 1] - tv[a]
-                            if d <= span:
-                                hist[d] -= 1
-                                distinct -= hist[d] == 0
-                        a += 1
-                    counts[k, y, x] = distinct
-                while a + 1 < b:
-                    d = tv[a + 1] - tv[a]
-                    if d <= span:
-                        hist[d] = 0
+                    counts[k, y, x] = ub[y, x]
+                continue
+            ns = range_times(words, r, lo, u_lo, u_hi, tv)
+            a = 0
+            b = 0
+            distinct = 0
+            for k in range(k_count):
+                e = ends[k]
+                s = e - span + 1
+                # an ISI longer than span never lies inside one window: not counted, so
+                # not removed either; the count itself is branch-free
+                while b < ns and tv[b] <= e:
+                    if b > a:
+                        d = tv[b] - tv[b - 1]
+                        if d <= span:
+                            distinct += hist[d] == 0
+                            hist[d] += 1
+                    b += 1
+                while a < b and tv[a] < s:
+                    if a + 1 < b:
+                        d = tv[a + 1] - tv[a]
+                        if d <= span:
+                            hist[d] -= 1
+                            distinct -= hist[d] == 0
                     a += 1
-                # TFI and TFP counts at the (ascending) history steps: monotone pointers
-                ip = -1
-                ia = 0
-                ib = 0
-                for k in range(k_count):
-                    e = ends[k]
-                    while ip + 1 < ns and tv[ip + 1] <= e:
-                        ip += 1
-                    isi[k, y, x] = _isi_from_times(tv, ns, ip, max(0, e - m), min(n, e + m + 1))
-                    while ia < ns and tv[ia] < ta[k]:
-                        ia += 1
-                    while ib < ns and tv[ib] < tb[k]:
-                        ib += 1
-                    cnt[k, y, x] = ib - ia
-                pcnt[y, x] = np.searchsorted(tv[:ns], pb, side="left") - np.searchsorted(
-                    tv[:ns], pa, side="left"
-                )
-                f0 = np.searchsorted(tv[:ns], d_lo, side="left")
-                f1 = np.searchsorted(tv[:ns], d_hi, side="left")
-                daisi[y, x] = daisi_from_times(tv[f0:f1], c - dspan, c + dspan)
+                counts[k, y, x] = distinct
+            while a + 1 < b:
+                d = tv[a + 1] - tv[a]
+                if d <= span:
+                    hist[d] = 0
+                a += 1
 
 
 @njit(parallel=True, cache=True)
@@ -333,38 +363,35 @@ def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, isi, tfa):
     """TFI intervals and TFA rates at ``centers`` (ascending) on the crop at ``(y0, x0)``."""
     n = packed.shape[0]
     kc, ch, cw = isi.shape
-    length = hi - lo
+    nw = (hi - lo + 63) >> 6
     for yy in prange(ch):
-        times = np.empty((_CHUNK, length + 1), np.int32)
-        ns_row = np.empty(_CHUNK, np.int64)
-        for cx in range(0, cw, _CHUNK):
-            cx1 = min(cw, cx + _CHUNK)
-            _gather_row(packed, geo, lo, hi, y0 + yy, x0 + cx, x0 + cx1, times, ns_row)
-            for x in range(cx, cx1):
-                tv = times[x - cx]
-                ns = ns_row[x - cx]
-                ip = -1  # last spike <= cc
-                f0 = 0  # first spike >= c_lo
-                f1 = 0  # first spike >= c_hi
-                for kk in range(kc):
-                    cc = centers[kk]
-                    c_lo = max(0, cc - m)
-                    c_hi = min(n, cc + m + 1)
-                    while ip + 1 < ns and tv[ip + 1] <= cc:
-                        ip += 1
-                    isi[kk, yy, x] = _isi_from_times(tv, ns, ip, c_lo, c_hi)
-                    if thr <= 0:
-                        continue
-                    # TFA over thr intervals (the rule of tfa._adaptive_kernel, no refractory)
-                    while f0 < ns and tv[f0] < c_lo:
-                        f0 += 1
-                    while f1 < ns and tv[f1] < c_hi:
-                        f1 += 1
-                    if f1 - f0 < 2:
-                        tfa[kk, yy, x] = 1.0 / (c_hi - c_lo + 1)
-                        continue
-                    a, b = grow_span(tv, f0, f1, ip, cc, thr)
-                    tfa[kk, yy, x] = (b - a) / (tv[b] - tv[a])
+        words = np.empty((cw + 80, nw), np.uint64)
+        tv = np.empty(hi - lo + 1, np.int64)
+        base, step = row_words(packed, geo, lo, hi, y0 + yy, x0, x0 + cw, words)
+        for x in range(cw):
+            ns = word_times(words, base + step * x, nw, lo, tv)
+            ip = -1  # last spike <= cc
+            f0 = 0  # first spike >= c_lo
+            f1 = 0  # first spike >= c_hi
+            for kk in range(kc):
+                cc = centers[kk]
+                c_lo = max(0, cc - m)
+                c_hi = min(n, cc + m + 1)
+                while ip + 1 < ns and tv[ip + 1] <= cc:
+                    ip += 1
+                isi[kk, yy, x] = _isi_from_times(tv, ns, ip, c_lo, c_hi)
+                if thr <= 0:
+                    continue
+                # TFA over thr intervals (the rule of tfa._adaptive_kernel, no refractory)
+                while f0 < ns and tv[f0] < c_lo:
+                    f0 += 1
+                while f1 < ns and tv[f1] < c_hi:
+                    f1 += 1
+                if f1 - f0 < 2:
+                    tfa[kk, yy, x] = 1.0 / (c_hi - c_lo + 1)
+                    continue
+                a, b = grow_span(tv, f0, f1, ip, cc, thr)
+                tfa[kk, yy, x] = (b - a) / (tv[b] - tv[a])
 
 
 def fine_mask(
@@ -404,10 +431,12 @@ def fine_mask(
 
 
 def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
-    """One whole-frame scan: the CSR history of MOG, DAISI at t, TFI and TFP at t.
+    """The whole-frame scan: the CSR history of MOG, DAISI at t, TFI and TFP at t.
 
     The same numbers as ``csr_frames`` (history frames' static TFP over ``mog_window`` steps),
-    ``daisi_strength``, ``tfi_rate`` and ``tfp_rate`` on the window.
+    ``daisi_strength``, ``tfi_rate`` and ``tfp_rate`` on the window. A first pass proves the
+    static pixels static and gathers what a static window needs; the second (TFI at every
+    history step, exact counts) runs only when some pixel is not proven static.
     """
     n, h, w = src.n, src.h, src.w
     ks = range(p["mog_frames"] - 1, -1, -1)
@@ -415,57 +444,87 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
         [center - k * p["mog_stride"] for k in ks if center - k * p["mog_stride"] >= 0], np.int64
     )
     span, m, dspan = int(p["T"]), int(p["max_isi"]), int(p["daisi_span"])
+    theta = int(p["theta"])
     spans = [tfp_span(int(e), n, p["mog_window"], p["tfp_mode"]) for e in ends]
     ta = np.array([a for a, _ in spans], np.int64)
     tb = np.array([b for _, b in spans], np.int64)
     pa, pb = tfp_span(center, n, p["tfp_window"], p["tfp_mode"])
     d_lo, d_hi = max(0, center - dspan - m), min(n, center + dspan + m + 1)
-    lo = max(0, min(int(ends[0]) - span + 1, int(ends[0]) - m, int(ta.min()), pa, d_lo))
-    hi = min(n, max(int(ends[-1]) + m + 1, int(tb.max()), pb, d_hi))
+    u_lo, u_hi = max(0, int(ends[0]) - span + 1), int(ends[-1]) + 1
+    lo = max(0, min(u_lo, int(ta.min()), pa, d_lo))
+    hi = min(n, max(u_hi, int(tb.max()), pb, d_hi))
     k = ends.size
-    counts = np.empty((k, h, w), np.int32)
-    isi = np.empty((k, h, w), np.int32)
+    ub = np.empty((h, w), np.int32)
     cnt = np.empty((k, h, w), np.int32)
     daisi = np.empty((h, w), np.float32)
     pcnt = np.empty((h, w), np.int32)
-    _history_kernel(
+    _static_kernel(
         src.packed,
         src.geo,
         lo,
         hi,
-        ends,
+        u_lo,
+        u_hi,
         span,
-        m,
+        theta,
         ta,
         tb,
+        pa,
+        pb,
         int(center),
         dspan,
         d_lo,
         d_hi,
-        pa,
-        pb,
-        counts,
-        isi,
+        ub,
         cnt,
-        daisi,
         pcnt,
+        daisi,
     )
-    masks = counts >= int(p["theta"])
+    tfps = [(cnt[j] / np.float32(max(1, tb[j] - ta[j]))).astype(np.float32) for j in range(k)]
+    tfp = (pcnt / np.float32(max(1, pb - pa))).astype(np.float32)
+    if not (ub >= theta).any():  # every pixel proven static in every history frame
+        return {
+            "rates": np.clip(np.stack(tfps), 0.0, 1.0),
+            "coarse": np.zeros((h, w), bool),
+            "tfi": lambda: _tfi_at(src, center, m),
+            "tfp": tfp,
+            "daisi": daisi,
+        }
+    lo2 = max(0, min(u_lo, int(ends[0]) - m))
+    hi2 = min(n, int(ends[-1]) + m + 1)
+    counts = np.empty((k, h, w), np.int32)
+    isi = np.empty((k, h, w), np.int32)
+    _dynamic_kernel(src.packed, src.geo, lo2, hi2, ends, span, theta, m, ub, counts, isi)
+    masks = counts >= theta
     rates = np.empty((k, h, w), np.float32)
     for j in range(k):
-        tfp_j = (cnt[j] / np.float32(max(1, tb[j] - ta[j]))).astype(np.float32)
         if masks[j].any():  # TFI only where a frame has dynamic pixels (as csr_frames)
-            rates[j] = atsr_fuse((1.0 / isi[j]).astype(np.float32), tfp_j, masks[j])[0]
+            rates[j] = atsr_fuse((1.0 / isi[j]).astype(np.float32), tfps[j], masks[j])[0]
         else:
-            rates[j] = np.clip(tfp_j, 0.0, 1.0)
-    tfp = (pcnt / np.float32(max(1, pb - pa))).astype(np.float32)
-    return {
-        "rates": rates,
-        "coarse": masks[-1],
-        "tfi": (1.0 / isi[-1]).astype(np.float32),
-        "tfp": tfp,
-        "daisi": daisi,
-    }
+            rates[j] = np.clip(tfps[j], 0.0, 1.0)
+    tfi = (1.0 / isi[-1]).astype(np.float32)
+    return {"rates": rates, "coarse": masks[-1], "tfi": lambda: tfi, "tfp": tfp, "daisi": daisi}
+
+
+def _tfi_at(src: _Spikes, center: int, m: int) -> np.ndarray:
+    """TFI rate (Eq. 3) at ``center`` on the whole frame, from the packed window."""
+    n = src.n
+    a, b = max(0, center - m), min(n, center + m + 1)
+    isi = np.empty((1, src.h, src.w), np.int32)
+    _dynamic_kernel(
+        src.packed,
+        src.geo,
+        a,
+        b,
+        np.array([center], np.int64),
+        1,
+        1 << 30,
+        m,
+        np.zeros((src.h, src.w), np.int32),
+        np.empty_like(isi),
+        isi,
+    )
+    return (1.0 / isi[0]).astype(np.float32)
 
 
 def _pm_frames(
@@ -518,7 +577,7 @@ def fine_stage(
     adaptive = bool(p.get("adaptive", True))
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
     hs = _history(src, center, p)
-    rates, coarse, tfp, tfi_full = hs["rates"], hs["coarse"], hs["tfp"], hs["tfi"]
+    rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
     # 2. MOG background and moving objects (Eq. 8-9)
     gain = p["mog_gain"]
     if gain <= 0:
@@ -576,6 +635,7 @@ def fine_stage(
     )
     if not fine.any():  # always-full pipeline on a static window: the same TFP output
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
+    tfi_full = hs["tfi"]()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     dyn[y0:y1, x0:x1] = refined
     # 6. ATSR (Eq. 7)

@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from cfsr._packed import stored_to_image
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.distinction import coarse_masks, distinct_isi_counts_packed
 from cfsr.methods.registry import Method, Output, Param, register
@@ -118,8 +117,7 @@ def csr_frame_packed(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One CSR frame and its coarse mask from packed frames: the same numbers as
     :func:`csr_frames`, without unpacking the window (the live path's budget)."""
-    counts = distinct_isi_counts_packed(packed, center, p["T"])
-    mask = np.ascontiguousarray(stored_to_image(counts, layout)) >= int(p["theta"])
+    mask = distinct_isi_counts_packed(packed, layout, center, p["T"]) >= int(p["theta"])
     tfp = tfp_rate_packed(packed, layout, center, window=p["tfp_window"], mode=p["tfp_mode"])
     if not mask.any():
         return np.clip(tfp, 0.0, 1.0), mask

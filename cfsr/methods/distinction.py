@@ -17,9 +17,15 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cfsr._words import geometry, leading_zeros, popcount, row_words, trailing_zeros
 from cfsr.methods._spiketimes import pixel_times, row_slab
 
-__all__ = ["distinct_isi_counts", "distinct_isi_counts_packed", "coarse_masks"]
+__all__ = [
+    "distinct_isi_counts",
+    "distinct_isi_counts_packed",
+    "distinct_in_words",
+    "coarse_masks",
+]
 
 
 @njit(parallel=True, cache=True)
@@ -113,69 +119,93 @@ def coarse_masks(spikes: np.ndarray, ends, span: int, theta: int) -> np.ndarray:
     return distinct_isi_counts(spikes, ends, span) >= int(theta)
 
 
-# index of the lowest set bit of each byte value: walks only the spikes of a byte
-_LOW_BIT = np.array([(v & -v).bit_length() - 1 if v else 8 for v in range(256)], np.int64)
+@njit(cache=True, inline="always")
+def distinct_in_words(words, k, nw, lo, a, b, span, big, cap):  # pragma: no cover - numba
+    """Distinct ISI values ``d <= span`` between consecutive spikes that both lie in
+    ``[a, b)``, walking word row ``k`` (:mod:`cfsr._words`, first step ``lo``).
+
+    With ``a = t - T + 1, b = t + 1, span = T`` it is ``|S_x(t)|`` of Eq. 5. Over a longer
+    range it bounds the count of every ``T``-window inside it from above (their ISI sets are
+    subsets), which the fused CFSR scan uses to prove a pixel static. ISI values below 64 steps
+    (nearly all) are bits of one uint64, counted by one popcount; the few longer ones (at most
+    ``(b - a) // 64``) go to ``big``. ``cap > 0`` stops the walk once the count reaches
+    ``cap`` (the count returned is then ``>= cap``, not exact).
+    """
+    one = np.uint64(1)
+    small = np.uint64(0)
+    nbig = 0
+    last = np.int64(-1)
+    q0 = (a - lo) >> 6
+    q1 = min(nw - 1, (b - 1 - lo) >> 6)
+    for q in range(q0, q1 + 1):
+        w = words[k, q]
+        base = lo + 64 * q
+        if base < a:  # drop steps before a
+            w &= ~((one << np.uint64(a - base)) - one)
+        if base + 64 > b:  # and from b on
+            w &= (one << np.uint64(b - base)) - one
+        if w == 0:
+            continue
+        first = np.int64(trailing_zeros(w))
+        top = 63 - np.int64(leading_zeros(w))
+        if last >= 0:  # the ISI that crosses into this word
+            d = base + first - last
+            if d < 64:
+                small |= one << np.uint64(d)
+            elif d <= span:
+                for j in range(nbig):
+                    if big[j] == d:
+                        break
+                else:
+                    big[nbig] = d
+                    nbig += 1
+        last = base + top
+        if popcount(w) >= 8:
+            # dense word: find every spike's successor at once, distance by distance (the
+            # loop runs up to the word's longest ISI, a few steps for a bright pixel)
+            rem = w & ~(one << np.uint64(top))
+            d = 1
+            while rem:
+                hit = rem & (w >> np.uint64(d))
+                small |= np.uint64(hit != 0) << np.uint64(d)
+                rem &= ~hit
+                d += 1
+        else:
+            prev = first
+            w &= w - one
+            while w:
+                s = np.int64(trailing_zeros(w))
+                w &= w - one
+                small |= one << np.uint64(s - prev)
+                prev = s
+        if cap > 0 and np.int64(popcount(small)) + nbig >= cap:
+            break
+    return np.int64(popcount(small)) + nbig
 
 
 @njit(parallel=True, cache=True)
-def _distinct_packed_kernel(packed, lo, hi, span, low, out):  # pragma: no cover - numba
-    """Distinct ISI values in frames ``[lo, hi)`` per stored pixel, read from packed bytes.
-
-    Each task owns one cache line of byte columns (512 pixels) and reads it frame by frame, in
-    memory order, visiting only set bits. ISI values below 64 steps (nearly all of them) are
-    kept as bits of one uint64 per pixel, so the count is a popcount at the end; the few longer
-    ones (at most ``span // 64`` per pixel) go to a short list.
-    """
-    nb = packed.shape[1]
-    nchunks = (nb + 63) // 64
-    maxbig = span // 64 + 1
-    one = np.uint64(1)
-    for c in prange(nchunks):
-        b0 = c * 64
-        m = min(nb, b0 + 64) - b0
-        small = np.zeros(m * 8, np.uint64)
-        big = np.empty((m * 8, maxbig), np.int64)
-        nbig = np.zeros(m * 8, np.int64)
-        last = np.full(m * 8, -1, np.int64)
-        for t in range(lo, hi):
-            row = packed[t]
-            for i in range(m):
-                v = np.int64(row[b0 + i])
-                while v:
-                    j = i * 8 + low[v]
-                    v &= v - 1
-                    lk = last[j]
-                    last[j] = t
-                    if lk < 0:
-                        continue
-                    d = t - lk
-                    if d < 64:
-                        small[j] |= one << np.uint64(d)
-                        continue
-                    nbj = nbig[j]
-                    for q in range(nbj):
-                        if big[j, q] == d:
-                            break
-                    else:
-                        big[j, nbj] = d
-                        nbig[j] = nbj + 1
-        for j in range(m * 8):
-            x = small[j]
-            cnt = 0
-            while x:
-                x &= x - one
-                cnt += 1
-            out[b0 * 8 + j] = cnt + nbig[j]
+def _distinct_words_kernel(packed, geo, lo, hi, span, out):  # pragma: no cover - numba
+    """:func:`distinct_in_words` over ``[lo, hi)`` for every pixel, image order."""
+    h, w = out.shape
+    nw = (hi - lo + 63) >> 6
+    for y in prange(h):
+        words = np.empty((w + 80, nw), np.uint64)
+        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        for x in range(w):
+            out[y, x] = distinct_in_words(words, base + step * x, nw, lo, lo, hi, span, big, 0)
     return out
 
 
-def distinct_isi_counts_packed(packed: np.ndarray, end: int, span: int) -> np.ndarray:
+def distinct_isi_counts_packed(packed: np.ndarray, layout, end: int, span: int) -> np.ndarray:
     """:func:`distinct_isi_counts` at one step, straight from packed frames.
 
     Parameters
     ----------
     packed : ndarray (n, frame_bytes) uint8
-        Packed frames (``.dat`` layout).
+        Packed frames (``.dat`` layout described by ``layout``).
+    layout : cfsr.layout.Layout
+        Geometry of the frames.
     end : int
         Index of the evaluation step t in ``packed``.
     span : int
@@ -183,8 +213,8 @@ def distinct_isi_counts_packed(packed: np.ndarray, end: int, span: int) -> np.nd
 
     Returns
     -------
-    counts : ndarray int32, stored pixel order
-        ``|S_x(t)|`` of Eq. 5; view it upright with :func:`cfsr._packed.stored_to_image`.
+    counts : ndarray (H, W) int32
+        ``|S_x(t)|`` of Eq. 5, upright.
     """
     if span < 1:
         raise ValueError(f"span T must be >= 1 step, got {span}")
@@ -192,7 +222,7 @@ def distinct_isi_counts_packed(packed: np.ndarray, end: int, span: int) -> np.nd
     if not 0 <= end < n:
         raise ValueError(f"evaluation step {end} outside the window of {n} steps")
     lo, hi = max(0, end - span + 1), end + 1
-    out = np.empty(packed.shape[1] * 8, np.int32)
-    return _distinct_packed_kernel(
-        np.ascontiguousarray(packed, dtype=np.uint8), lo, hi, int(span), _LOW_BIT, out
+    out = np.empty((layout.height, layout.width), np.int32)
+    return _distinct_words_kernel(
+        np.ascontiguousarray(packed, dtype=np.uint8), geometry(layout), lo, hi, int(span), out
     )
