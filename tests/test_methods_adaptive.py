@@ -207,3 +207,38 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
     np.testing.assert_array_equal(got["tfp"], want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
     np.testing.assert_array_equal(got["daisi"], want_d)
+
+
+def test_pm_tiles_cover_the_search_margin_of_every_fine_pixel_and_skip_the_rest():
+    fine = np.zeros((250, 400), bool)
+    fine[100:110, 50:60] = True  # one small object
+    fine[20, 390] = True  # one pixel near the right edge
+    margin = 23
+    tiles = cf.pm_tiles(fine, margin)
+    px = np.kron(tiles, np.ones((cf.TILE, cf.TILE), bool))[:250, :400]
+    import cv2
+
+    reach = cv2.dilate(fine.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
+    assert px[reach].all()  # everything PatchMatch and the guides' blur can read
+    assert px.mean() < 0.25  # and the frame's far side is skipped
+    assert not cf.pm_tiles(np.zeros((250, 400), bool), margin).any()
+
+
+def test_patchmatch_frames_on_tiles_equal_the_whole_box_where_computed():
+    rng = np.random.default_rng(5)
+    s = _random_window(rng, 300, 70, 90)
+    p = _params(max_isi=60, pm_guide=3)
+    cs = [150, 120, 180]
+    tiles = np.zeros((-(-70 // cf.TILE), -(-90 // cf.TILE)), bool)
+    tiles[1, 2] = tiles[3, 4] = tiles[3, 5] = True
+    src = cf._Spikes.from_frames(s)
+    # a box starting on a tile row computes exactly the marked tiles; one starting inside a
+    # tile row computes every crop row band that touches a marked tile (a superset)
+    for box in [(16, 70, 3, 90), (5, 70, 3, 90)]:
+        raw_t, _ = cf._pm_frames(src, cs, box, p, tiles)
+        raw_b, _ = cf._pm_frames(src, cs, box, p)
+        px = np.kron(tiles, np.ones((cf.TILE, cf.TILE), bool))[box[0] : box[1], box[2] : box[3]]
+        np.testing.assert_array_equal(raw_t[:, px], raw_b[:, px])
+        if box[0] % cf.TILE == 0:  # unmarked tiles hold the fill value: not computed
+            assert (raw_t[:, ~px] == 1.0).all()
+            assert (raw_b[:, ~px] != 1.0).any()

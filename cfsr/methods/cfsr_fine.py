@@ -16,23 +16,27 @@ the calibration of every default are in docs/methods.md):
    a ``close_size`` square, holes filled, components under ``min_area`` pixels dropped, grown
    by ``dilate`` pixels. This is the ``fine`` output ("the edges refine the object mask").
 5. **Fine reconstruction** (:mod:`cfsr.methods.patchmatch`): TFI at t and at ``t +- pm_step*i``,
-   ``i = 1..pm_count`` (clipped to the window), computed only on the bounding box of the fine
-   mask (plus search margin); PatchMatch on a guide (TFA over ``pm_guide`` intervals, Gaussian
-   ``pm_sigma``) matches the 6 x 6 patch of every fine-mask pixel in each frame, and the raw
-   TFI rates at the matches are averaged with the reference.
+   ``i = 1..pm_count`` (clipped to the window), computed only on the 16 x 16 tiles within the
+   search margin of a fine-mask pixel; PatchMatch on a guide (TFA over ``pm_guide``
+   intervals, Gaussian ``pm_sigma``) matches the 6 x 6 patch of every fine-mask pixel in each
+   frame, and the raw TFI rates at the matches are averaged with the reference.
 6. **ATSR** (:mod:`cfsr.methods.atsr`, Eq. 7): the refined dynamic region is fused with the
    static TFP (``tfp_window``) scaled by mean TFI / mean TFP over the static region.
 
-"Skip what the scene does not need" (``adaptive``, default True): an empty fine mask skips the
-TFI frames and PatchMatch entirely (the output is then the plain TFP), MOG runs only where the
-8-bit history varies by phi0 or more, and PatchMatch works only on the fine mask's pixels, with
-TFI frames and guides computed on its bounding box. ``adaptive=False`` is the always-full
-pipeline (every stage on the whole frame, same output rule) that the benchmark compares with.
+"Skip what the scene does not need" (``adaptive``, default True): the history scan proves most
+pixels static in one walk of their spikes, and runs its second pass (TFI at every history step,
+exact counts) only when some pixel is not proven static; an empty fine mask skips the TFI frames
+and PatchMatch entirely (the output is then the plain TFP); MOG runs only where the 8-bit
+history varies by phi0 or more; tiles without a fine-mask pixel within the search margin get no
+TFI frames and no guides, and PatchMatch works only on the fine mask's pixels.
+``adaptive=False`` is the always-full pipeline (every stage on the whole frame, same output
+rule) that the benchmark compares with.
 
-Speed: every per-pixel quantity above is a function of the pixel's spike times, so two fused
-scans gather them once per pixel straight from the packed frames (``compute_packed``; no
-unpacking) and compute, with the same numbers as the stand-alone kernels: the whole-frame
-history scan (steps 1 and 3, the TFP and TFI at t) and the PatchMatch-region scan (step 5).
+Speed: every per-pixel quantity above is a function of the pixel's spike times, so fused scans
+read them once per pixel straight from the packed frames as spike words (:mod:`cfsr._words`;
+``compute_packed``, no unpacking) and compute, with the same numbers as the stand-alone
+kernels: the whole-frame history scan (steps 1 and 3, the TFP and TFI at t) and the
+PatchMatch-region scan (step 5).
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ from cfsr._words import (
 )
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
-from cfsr.methods.daisi import daisi_from_times
+from cfsr.methods.daisi import daisi_from_times, log_table
 from cfsr.methods.distinction import distinct_in_words
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
@@ -62,7 +66,7 @@ from cfsr.methods.registry import Method, Output, Param, register
 from cfsr.methods.tfa import grow_span
 from cfsr.methods.tfp import tfp_span
 
-__all__ = ["fine_mask", "fine_stage", "cfsr_window"]
+__all__ = ["fine_mask", "fine_stage", "cfsr_window", "pm_tiles", "TILE"]
 
 FINE_PARAMS: dict[str, Param] = {
     "mog_frames": Param(12, "frames", "CSR frames K fed to MOG, ending at t", minimum=1),
@@ -224,7 +228,7 @@ def _isi_words(words, r, lo, c, a, b):  # pragma: no cover - numba
 
 
 @njit(cache=True, inline="always")
-def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc):  # pragma: no cover - numba
+def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no cover - numba
     """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
     ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``."""
     a_lo = c - dspan
@@ -247,7 +251,7 @@ def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc):  # pragma: no cover -
         if n2 >= 0:
             loc[nl] = n2
             nl += 1
-    return daisi_from_times(loc[:nl], a_lo, a_hi)
+    return daisi_from_times(loc[:nl], a_lo, a_hi, logs)
 
 
 @njit(parallel=True, cache=True)
@@ -260,17 +264,16 @@ def _static_kernel(
     u_hi,
     span,
     theta,
-    ta,
-    tb,
-    pa,
-    pb,
+    bounds,
+    ia,
+    ib,
     c,
     dspan,
     d_lo,
     d_hi,
+    logs,
     ub,
     cnt,
-    pcnt,
     daisi,
 ):  # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
@@ -278,25 +281,30 @@ def _static_kernel(
     Per pixel, on words of ``[lo, hi)``: ``ub``, the distinct ISIs of the union
     ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at ``theta``): every window's
     ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
-    the TFP counts of the history frames (``cnt``) and at t (``pcnt``); DAISI at t.
+    the spike counts ``cnt[j]`` in ``[bounds[ia[j]], bounds[ib[j]])`` (the TFP windows of the
+    history frames and of t; they share edges, so each distinct edge is counted once); DAISI
+    at t.
     """
     h, w = ub.shape
-    k_count = ta.shape[0]
+    n_win = ia.shape[0]
+    nb = bounds.shape[0]
     nw = (hi - lo + 63) >> 6
     for y in prange(h):
         words = np.empty((w + 80, nw), np.uint64)
         big = np.empty((hi - lo) // 64 + 1, np.int64)
         loc = np.empty(2 * dspan + 8, np.int64)
         prefix = np.empty(nw + 1, np.int64)
+        before = np.empty(nb, np.int64)
         base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):
             r = base + step * x
             ub[y, x] = distinct_in_words(words, r, nw, lo, u_lo, u_hi, span, big, theta)
             prefix_counts(words, r, nw, prefix)
-            for k in range(k_count):
-                cnt[k, y, x] = count_range(words, r, lo, prefix, ta[k], tb[k])
-            pcnt[y, x] = count_range(words, r, lo, prefix, pa, pb)
-            daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc)
+            for i in range(nb):
+                before[i] = count_range(words, r, lo, prefix, lo, bounds[i])
+            for j in range(n_win):
+                cnt[j, y, x] = before[ib[j]] - before[ia[j]]
+            daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs)
 
 
 @njit(parallel=True, cache=True)
@@ -358,40 +366,90 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi):
 
 
 @njit(parallel=True, cache=True)
-def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, isi, tfa):
+def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, tile, runs_at, runs, isi, tfa):
     # pragma: no cover - numba
-    """TFI intervals and TFA rates at ``centers`` (ascending) on the crop at ``(y0, x0)``."""
+    """TFI intervals and TFA rates at ``centers`` (ascending) on the crop at ``(y0, x0)``,
+    only on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of tile row ``i``."""
     n = packed.shape[0]
     kc, ch, cw = isi.shape
     nw = (hi - lo + 63) >> 6
     for yy in prange(ch):
         words = np.empty((cw + 80, nw), np.uint64)
         tv = np.empty(hi - lo + 1, np.int64)
-        base, step = row_words(packed, geo, lo, hi, y0 + yy, x0, x0 + cw, words)
-        for x in range(cw):
-            ns = word_times(words, base + step * x, nw, lo, tv)
-            ip = -1  # last spike <= cc
-            f0 = 0  # first spike >= c_lo
-            f1 = 0  # first spike >= c_hi
-            for kk in range(kc):
-                cc = centers[kk]
-                c_lo = max(0, cc - m)
-                c_hi = min(n, cc + m + 1)
-                while ip + 1 < ns and tv[ip + 1] <= cc:
-                    ip += 1
-                isi[kk, yy, x] = _isi_from_times(tv, ns, ip, c_lo, c_hi)
-                if thr <= 0:
-                    continue
-                # TFA over thr intervals (the rule of tfa._adaptive_kernel, no refractory)
-                while f0 < ns and tv[f0] < c_lo:
-                    f0 += 1
-                while f1 < ns and tv[f1] < c_hi:
-                    f1 += 1
-                if f1 - f0 < 2:
-                    tfa[kk, yy, x] = 1.0 / (c_hi - c_lo + 1)
-                    continue
-                a, b = grow_span(tv, f0, f1, ip, cc, thr)
-                tfa[kk, yy, x] = (b - a) / (tv[b] - tv[a])
+        tr = yy // tile
+        for ri in range(runs_at[tr], runs_at[tr + 1]):
+            xa = runs[ri, 0]
+            xb = runs[ri, 1]
+            base, step = row_words(packed, geo, lo, hi, y0 + yy, x0 + xa, x0 + xb, words)
+            for x in range(xa, xb):
+                ns = word_times(words, base + step * (x - xa), nw, lo, tv)
+                ip = -1  # last spike <= cc
+                f0 = 0  # first spike >= c_lo
+                f1 = 0  # first spike >= c_hi
+                for kk in range(kc):
+                    cc = centers[kk]
+                    c_lo = max(0, cc - m)
+                    c_hi = min(n, cc + m + 1)
+                    while ip + 1 < ns and tv[ip + 1] <= cc:
+                        ip += 1
+                    isi[kk, yy, x] = _isi_from_times(tv, ns, ip, c_lo, c_hi)
+                    if thr <= 0:
+                        continue
+                    # TFA over thr intervals (the rule of tfa._adaptive_kernel, no refractory)
+                    while f0 < ns and tv[f0] < c_lo:
+                        f0 += 1
+                    while f1 < ns and tv[f1] < c_hi:
+                        f1 += 1
+                    if f1 - f0 < 2:
+                        tfa[kk, yy, x] = 1.0 / (c_hi - c_lo + 1)
+                        continue
+                    a, b = grow_span(tv, f0, f1, ip, cc, thr)
+                    tfa[kk, yy, x] = (b - a) / (tv[b] - tv[a])
+
+
+#: Side (pixels) of the tiles the fine stage skips or works on.
+TILE = 16
+
+
+def pm_tiles(fine: np.ndarray, margin: int, tile: int = TILE) -> np.ndarray:
+    """Tiles (bool ``(ceil(H/tile), ceil(W/tile))``) that PatchMatch can read: those within
+    ``margin`` pixels (rounded up to whole tiles) of a tile holding a fine-mask pixel.
+
+    Every other tile is skipped by the fine stage: no TFI frames, no guides, no matching.
+    """
+    h, w = fine.shape
+    th, tw = -(-h // tile), -(-w // tile)
+    padded = np.zeros((th * tile, tw * tile), bool)
+    padded[:h, :w] = fine
+    occupied = padded.reshape(th, tile, tw, tile).any(axis=(1, 3))
+    r = -(-int(margin) // tile)
+    if r > 0 and occupied.any():
+        import cv2
+
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        occupied = cv2.dilate(occupied.astype(np.uint8), k) > 0
+    return occupied
+
+
+def _runs(tiles: np.ndarray, tile: int, x0: int, x1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Column runs ``[xa, xb)`` (relative to ``x0``) of needed tiles, per tile row."""
+    at = [0]
+    runs: list[tuple[int, int]] = []
+    for row in tiles:
+        c = 0
+        while c < row.size:
+            if row[c]:
+                d = c
+                while d < row.size and row[d]:
+                    d += 1
+                xa, xb = max(x0, c * tile), min(x1, d * tile)
+                if xb > xa:
+                    runs.append((xa - x0, xb - x0))
+                c = d
+            else:
+                c += 1
+        at.append(len(runs))
+    return np.array(at, np.int64), np.array(runs, np.int64).reshape(-1, 2)
 
 
 def fine_mask(
@@ -454,10 +512,13 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
     lo = max(0, min(u_lo, int(ta.min()), pa, d_lo))
     hi = min(n, max(u_hi, int(tb.max()), pb, d_hi))
     k = ends.size
+    # the K history TFP windows and the one at t, as indices into their sorted distinct edges
+    wins = np.concatenate([np.stack([ta, tb], 1), [[pa, pb]]]).astype(np.int64)
+    bounds, inv = np.unique(wins, return_inverse=True)
+    inv = inv.reshape(wins.shape)
     ub = np.empty((h, w), np.int32)
-    cnt = np.empty((k, h, w), np.int32)
+    counts_all = np.empty((k + 1, h, w), np.int32)
     daisi = np.empty((h, w), np.float32)
-    pcnt = np.empty((h, w), np.int32)
     _static_kernel(
         src.packed,
         src.geo,
@@ -467,19 +528,19 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
         u_hi,
         span,
         theta,
-        ta,
-        tb,
-        pa,
-        pb,
+        bounds.astype(np.int64),
+        np.ascontiguousarray(inv[:, 0]),
+        np.ascontiguousarray(inv[:, 1]),
         int(center),
         dspan,
         d_lo,
         d_hi,
+        log_table(d_hi - d_lo),
         ub,
-        cnt,
-        pcnt,
+        counts_all,
         daisi,
     )
+    cnt, pcnt = counts_all[:k], counts_all[k]
     tfps = [(cnt[j] / np.float32(max(1, tb[j] - ta[j]))).astype(np.float32) for j in range(k)]
     tfp = (pcnt / np.float32(max(1, pb - pa))).astype(np.float32)
     if not (ub >= theta).any():  # every pixel proven static in every history frame
@@ -528,25 +589,41 @@ def _tfi_at(src: _Spikes, center: int, m: int) -> np.ndarray:
 
 
 def _pm_frames(
-    src: _Spikes, centers, box: tuple[int, int, int, int], p: Mapping[str, Any]
+    src: _Spikes,
+    centers,
+    box: tuple[int, int, int, int],
+    p: Mapping[str, Any],
+    tiles: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Raw TFI rates and matching guides at ``centers`` on ``box = (y0, y1, x0, x1)``.
 
     Guides: TFA over ``pm_guide`` intervals (or the TFI), Gaussian-smoothed. TFA adapts its
     integration to the pixel's own firing, so the guide is equally clean in bright and dark
     scenes (a fixed-window TFP guide is mostly 0 or 1/w in low light). The same numbers as
-    ``tfi_rates`` and ``adaptive_rates`` on the crop.
+    ``tfi_rates`` and ``adaptive_rates`` on the crop. ``tiles`` (full-frame grid of
+    :data:`TILE`-pixel tiles, see :func:`pm_tiles`): only the tiles marked are computed, the
+    rest of the box holds rate 1 (never read by PatchMatch).
     """
     n = src.n
     y0, y1, x0, x1 = box
+    if tiles is None:
+        tiles = np.ones((-(-src.h // TILE), -(-src.w // TILE)), bool)
+    # tile rows of the box, aligned on the crop's first row
+    sub = np.zeros((-(-(y1 - y0) // TILE), tiles.shape[1]), bool)
+    for i in range(sub.shape[0]):
+        ya, yb = y0 + i * TILE, min(y1, y0 + (i + 1) * TILE)
+        sub[i] = tiles[ya // TILE : (yb - 1) // TILE + 1].any(axis=0)
+    runs_at, runs = _runs(sub, TILE, x0, x1)
     cs = np.asarray(centers, np.int64)
     order = np.argsort(cs, kind="stable")
     m = int(p["max_isi"])
     lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
-    isi = np.empty((cs.size, y1 - y0, x1 - x0), np.int32)
-    tfa = np.empty(isi.shape, np.float32)
+    isi = np.ones((cs.size, y1 - y0, x1 - x0), np.int32)
+    tfa = np.ones(isi.shape, np.float32)
     thr = int(p["pm_guide"])
-    _pm_kernel(src.packed, src.geo, lo, hi, y0, x0, cs[order], m, thr, isi, tfa)
+    _pm_kernel(
+        src.packed, src.geo, lo, hi, y0, x0, cs[order], m, thr, TILE, runs_at, runs, isi, tfa
+    )
     inv = np.empty_like(order)
     inv[order] = np.arange(order.size)
     raw = (1.0 / isi[inv]).astype(np.float32)
@@ -565,12 +642,12 @@ def fine_stage(
     """The whole CFSR pipeline on one window; returns ``(rate, {"coarse", "fine"})``.
 
     ``p["adaptive"]`` (default True) skips what the scene does not need: no fine-mask pixel ->
-    the plain TFP; otherwise TFI frames and guides only on the fine mask's bounding box (plus
-    the search margin) and PatchMatch only on the fine-mask pixels. ``adaptive=False`` is the
-    always-full pipeline: MOG on the whole frame, TFI frames, guides and PatchMatch on every
-    pixel, then the same output rule (TFP where the fine mask is empty, ATSR with the fine mask
-    otherwise), so the two differ only where PatchMatch's propagation from pixels outside the
-    mask changes a match.
+    the plain TFP; otherwise TFI frames and guides only on the tiles within the search margin
+    of a fine-mask pixel (:func:`pm_tiles`) and PatchMatch only on the fine-mask pixels.
+    ``adaptive=False`` is the always-full pipeline: MOG on the whole frame, TFI frames, guides
+    and PatchMatch on every pixel, then the same output rule (TFP where the fine mask is empty,
+    ATSR with the fine mask otherwise), so the two differ only where PatchMatch's propagation
+    from pixels outside the mask changes a match.
     """
     src = window if isinstance(window, _Spikes) else _Spikes.from_frames(window)
     n, h, w = src.n, src.h, src.w
@@ -606,20 +683,23 @@ def fine_stage(
     masks = {"coarse": coarse, "fine": fine}
     if adaptive and not fine.any():
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
-    # 5. TFI refined by PatchMatch on the fine region (adaptive: on its bounding box only)
+    # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles it can
+    # read, within the search margin of a fine-mask pixel)
     if adaptive:
-        ys, xs = np.nonzero(fine)
         margin = p["pm_radius"] + p["pm_patch"] + int(3 * p["pm_sigma"]) + 1
-        y0, y1 = max(0, ys.min() - margin), min(h, ys.max() + margin + 1)
-        x0, x1 = max(0, xs.min() - margin), min(w, xs.max() + margin + 1)
+        tiles = pm_tiles(fine, margin)
+        ty, tx = np.nonzero(tiles)
+        y0, y1 = ty.min() * TILE, min(h, (ty.max() + 1) * TILE)
+        x0, x1 = tx.min() * TILE, min(w, (tx.max() + 1) * TILE)
         domain = fine[y0:y1, x0:x1]
     else:
         y0, y1, x0, x1 = 0, h, 0, w
+        tiles = None
         domain = np.ones((h, w), bool)
     offs = [p["pm_step"] * i for i in range(1, p["pm_count"] + 1)]
     # the reference t first, then t -+ step*i inside the window
     tcs = [center] + [c for s in offs for c in (center - s, center + s) if 0 <= c < n]
-    raw, guides = _pm_frames(src, tcs, (int(y0), int(y1), int(x0), int(x1)), p)
+    raw, guides = _pm_frames(src, tcs, (int(y0), int(y1), int(x0), int(x1)), p, tiles)
     refined = patchmatch_fuse(
         raw[0],
         guides[0],
@@ -632,12 +712,15 @@ def fine_stage(
         h=p["pm_h"],
         seed=seed,
         origin=(int(y0), int(x0)),
+        # temporal schedule: each target starts from the motion predicted by the nearer ones
+        offsets_steps=[c - center for c in tcs[1:]],
     )
     if not fine.any():  # always-full pipeline on a static window: the same TFP output
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
     tfi_full = hs["tfi"]()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
-    dyn[y0:y1, x0:x1] = refined
+    crop = dyn[y0:y1, x0:x1]
+    crop[domain] = refined[domain]
     # 6. ATSR (Eq. 7)
     rate, _ = atsr_fuse(dyn, tfp, fine, tfi=tfi_full)
     return rate, masks

@@ -30,17 +30,28 @@ from numba import njit, prange
 
 from cfsr.methods._spiketimes import pixel_times, row_slab
 
-__all__ = ["daisi_strength", "daisi_edges", "daisi_from_times"]
+__all__ = ["daisi_strength", "daisi_edges", "daisi_from_times", "log_table"]
+
+
+@njit(cache=True)
+def log_table(n):  # pragma: no cover - numba
+    """``logs[d] = log(d)`` for ISIs ``d = 1 .. n`` steps (``logs[0] = 0``): per-pixel DAISI
+    then costs table reads, not logarithms, with the very same values."""
+    logs = np.zeros(max(1, n + 1), np.float64)
+    for d in range(1, n + 1):
+        logs[d] = math.log(d)
+    return logs
 
 
 @njit(cache=True, inline="always")
-def daisi_from_times(tv, a_lo, a_hi):  # pragma: no cover - numba
+def daisi_from_times(tv, a_lo, a_hi, logs):  # pragma: no cover - numba
     """Largest adjacent-ISI log ratio D (Eq. 10-13) for steps in ``[a_lo, a_hi]``.
 
     ``tv`` holds one pixel's spike steps in order; interval k runs from ``tv[k-1]`` to ``tv[k]``.
     A spike inside the range compares its interval with the previous one (Eq. 10-11); a step
-    strictly inside an interval uses the three-ISI form (Eq. 12-13). Shared by
-    :func:`daisi_strength` and the fused CFSR pass.
+    strictly inside an interval uses the three-ISI form (Eq. 12-13). ``logs``: a
+    :func:`log_table` covering the longest ISI in ``tv``. Shared by :func:`daisi_strength` and
+    the fused CFSR pass.
     """
     ns = tv.shape[0]
     best = 0.0
@@ -52,25 +63,25 @@ def daisi_from_times(tv, a_lo, a_hi):  # pragma: no cover - numba
         s1 = tv[k]
         if s1 < a_lo - 1 or s0 > a_hi:
             continue
-        lk = math.log(s1 - s0)
+        lk = logs[s1 - s0]
         if a_lo <= s1 <= a_hi and k >= 2:
-            d = abs(lk - math.log(tv[k - 1] - tv[k - 2]))
+            d = abs(lk - logs[tv[k - 1] - tv[k - 2]])
             if d > best:
                 best = d
         if s1 - s0 >= 2 and s0 + 1 <= a_hi and s1 - 1 >= a_lo:
             if k >= 2:
-                d = abs(lk - math.log(tv[k - 1] - tv[k - 2]))
+                d = abs(lk - logs[tv[k - 1] - tv[k - 2]])
                 if d > best:
                     best = d
             if k + 1 < ns:
-                d = abs(math.log(tv[k + 1] - tv[k]) - lk)
+                d = abs(logs[tv[k + 1] - tv[k]] - lk)
                 if d > best:
                     best = d
     return best
 
 
 @njit(parallel=True, cache=True)
-def _daisi_kernel(spikes, c, span, lo, hi, out):  # pragma: no cover - numba
+def _daisi_kernel(spikes, c, span, lo, hi, logs, out):  # pragma: no cover - numba
     n, h, w = spikes.shape
     length = hi - lo
     a_lo = c - span
@@ -80,7 +91,7 @@ def _daisi_kernel(spikes, c, span, lo, hi, out):  # pragma: no cover - numba
         times = np.empty(length + 1, np.int64)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)
-            best = daisi_from_times(times[:ns], a_lo, a_hi)
+            best = daisi_from_times(times[:ns], a_lo, a_hi, logs)
             out[y, x] = best
     return out
 
@@ -110,7 +121,13 @@ def daisi_strength(spikes: np.ndarray, center: int, *, span: int = 0, max_isi: i
     hi = min(n, center + span + max_isi + 1)
     out = np.zeros((h, w), np.float32)
     return _daisi_kernel(
-        np.ascontiguousarray(spikes, dtype=np.uint8), center, int(span), lo, hi, out
+        np.ascontiguousarray(spikes, dtype=np.uint8),
+        center,
+        int(span),
+        lo,
+        hi,
+        log_table(hi - lo),
+        out,
     )
 
 

@@ -1,0 +1,86 @@
+"""PatchMatch's temporal schedule (``offsets_steps``): predictions from the nearer targets.
+
+* Under a global linear motion, every target's NNF is the exact displacement.
+* The result does not depend on the number of threads, and a crop matches the whole frame.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from cfsr.methods.patchmatch import nnf_multi, patchmatch_fuse
+
+
+def _texture(h, w, seed=0):
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), 1.2)
+
+
+def _moving(steps, v, h=90, w=120, pad=40, seed=0):
+    """Frames of a texture translating by ``v`` pixels per step, sampled at ``steps``."""
+    big = _texture(h + 2 * pad, w + 2 * pad, seed)
+    ref = big[pad : pad + h, pad : pad + w]
+    tg = []
+    for s in steps:
+        dy, dx = round(v[0] * s), round(v[1] * s)
+        # content at (y, x) of ref sits at (y + dy, x + dx) of the frame at step s
+        tg.append(big[pad - dy : pad - dy + h, pad - dx : pad - dx + w])
+    return ref, np.stack(tg)
+
+
+def _steps(step=3, count=8):
+    return [v for i in range(1, count + 1) for v in (-step * i, step * i)]
+
+
+def test_temporal_schedule_tracks_a_linear_motion_exactly():
+    steps = _steps()
+    ref, tg = _moving(steps, v=(1 / 3, -2 / 3))  # whole-pixel steps: (i, -2i) at 3i
+    mask = np.zeros(ref.shape, bool)
+    mask[30:60, 40:80] = True
+    ys, xs, off, cost = nnf_multi(
+        ref, tg, mask, iters=2, max_radius=8, seed=1, offsets_steps=steps, near_radius=2
+    )
+    for k, s in enumerate(steps):
+        want = (round(s / 3), round(-2 * s / 3))
+        hit = (off[k, :, 0] == want[0]) & (off[k, :, 1] == want[1])
+        # the largest displacement (16 px) is beyond the near search of 2 px: only the
+        # predictions can get there
+        assert hit.mean() > 0.99, (s, want, hit.mean())
+    assert np.all(cost >= 0)
+
+
+def test_temporal_schedule_is_thread_independent_and_crop_invariant():
+    steps = _steps(count=6)[:-1]  # an unpaired target at the end is allowed
+    ref, tg = _moving(steps, v=(0.4, 0.3), seed=4)
+    rng = np.random.default_rng(2)
+    ref = ref + 0.02 * rng.standard_normal(ref.shape).astype(np.float32)
+    mask = np.zeros(ref.shape, bool)
+    mask[35:58, 45:80] = rng.random((23, 35)) < 0.8
+    kw = dict(iters=2, max_radius=8, seed=2**40 + 3, offsets_steps=steps, band=5)
+    before = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = patchmatch_fuse(ref, ref, tg, tg, mask, **kw)
+        numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+        two = patchmatch_fuse(ref, ref, tg, tg, mask, **kw)
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(one, two)
+    # a crop around the mask, far enough from its borders that no search reaches them
+    y0, x0 = 2, 6
+    crop = patchmatch_fuse(
+        ref[y0:, x0:],
+        ref[y0:, x0:],
+        tg[:, y0:, x0:],
+        tg[:, y0:, x0:],
+        mask[y0:, x0:],
+        origin=(y0, x0),
+        **kw,
+    )
+    np.testing.assert_array_equal(crop[mask[y0:, x0:]], one[mask])
+    # the plain schedule is still there and differs (another search)
+    plain = patchmatch_fuse(ref, ref, tg, tg, mask, iters=2, max_radius=8, seed=2**40 + 3)
+    assert not np.array_equal(plain, one)
