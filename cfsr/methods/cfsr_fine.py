@@ -366,12 +366,14 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi):
 
 
 @njit(parallel=True, cache=True)
-def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, tile, runs_at, runs, isi, tfa):
+def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, slot, m, thr, tile, runs_at, runs, raw, tfa):
     # pragma: no cover - numba
-    """TFI intervals and TFA rates at ``centers`` (ascending) on the crop at ``(y0, x0)``,
-    only on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of tile row ``i``."""
+    """TFI rates (``1 / ISI``, float32) and TFA rates at ``centers`` (ascending; written to
+    frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the column runs
+    ``runs[runs_at[i]:runs_at[i + 1]]`` of tile row ``i``."""
     n = packed.shape[0]
-    kc, ch, cw = isi.shape
+    kc = centers.shape[0]
+    ch, cw = raw.shape[1:]
     nw = (hi - lo + 63) >> 6
     for yy in prange(ch):
         words = np.empty((cw + 80, nw), np.uint64)
@@ -392,7 +394,8 @@ def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, tile, runs_at, runs
                     c_hi = min(n, cc + m + 1)
                     while ip + 1 < ns and tv[ip + 1] <= cc:
                         ip += 1
-                    isi[kk, yy, x] = _isi_from_times(tv, ns, ip, c_lo, c_hi)
+                    sk = slot[kk]
+                    raw[sk, yy, x] = np.float32(1.0 / _isi_from_times(tv, ns, ip, c_lo, c_hi))
                     if thr <= 0:
                         continue
                     # TFA over thr intervals (the rule of tfa._adaptive_kernel, no refractory)
@@ -401,10 +404,10 @@ def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, m, thr, tile, runs_at, runs
                     while f1 < ns and tv[f1] < c_hi:
                         f1 += 1
                     if f1 - f0 < 2:
-                        tfa[kk, yy, x] = 1.0 / (c_hi - c_lo + 1)
+                        tfa[sk, yy, x] = 1.0 / (c_hi - c_lo + 1)
                         continue
                     a, b = grow_span(tv, f0, f1, ip, cc, thr)
-                    tfa[kk, yy, x] = (b - a) / (tv[b] - tv[a])
+                    tfa[sk, yy, x] = (b - a) / (tv[b] - tv[a])
 
 
 #: Side (pixels) of the tiles the fine stage skips or works on.
@@ -618,16 +621,27 @@ def _pm_frames(
     order = np.argsort(cs, kind="stable")
     m = int(p["max_isi"])
     lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
-    isi = np.ones((cs.size, y1 - y0, x1 - x0), np.int32)
-    tfa = np.ones(isi.shape, np.float32)
     thr = int(p["pm_guide"])
+    raw = np.ones((cs.size, y1 - y0, x1 - x0), np.float32)
+    tfa = np.ones(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     _pm_kernel(
-        src.packed, src.geo, lo, hi, y0, x0, cs[order], m, thr, TILE, runs_at, runs, isi, tfa
+        src.packed,
+        src.geo,
+        lo,
+        hi,
+        y0,
+        x0,
+        cs[order],
+        order,
+        m,
+        thr,
+        TILE,
+        runs_at,
+        runs,
+        raw,
+        tfa,
     )
-    inv = np.empty_like(order)
-    inv[order] = np.arange(order.size)
-    raw = (1.0 / isi[inv]).astype(np.float32)
-    g = raw.copy() if thr <= 0 else tfa[inv]
+    g = raw.copy() if thr <= 0 else tfa
     if p["pm_sigma"] > 0:
         import cv2
 
