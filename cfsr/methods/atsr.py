@@ -20,8 +20,35 @@ the fused rate to ``[0, 1]`` spikes per step.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
 
 __all__ = ["atsr_alpha", "atsr_fuse"]
+
+
+@njit(cache=True)
+def _static_sums(tfi, tfp, static):  # pragma: no cover - numba
+    """Sums of ``tfi`` and ``tfp`` over the ``static`` pixels, in float64 (flat arrays)."""
+    num = 0.0
+    den = 0.0
+    for i in range(static.size):
+        if static[i]:
+            num += tfi[i]
+            den += tfp[i]
+    return num, den
+
+
+@njit(parallel=True, cache=True)
+def _paste_kernel(dynamic, tfp, mask, alpha, out):  # pragma: no cover - numba
+    """``mask ? dynamic : alpha * tfp``, NaN -> 0, clipped to [0, 1] (flat arrays)."""
+    for i in prange(out.size):
+        v = dynamic[i] if mask[i] else alpha * tfp[i]
+        out[i] = 0.0 if np.isnan(v) else min(max(v, 0.0), 1.0)
+    return out
+
+
+def _flat(a: np.ndarray, dtype=None) -> np.ndarray:
+    """Contiguous 1-D view (a copy only where needed); the kernels compile per dtype."""
+    return np.ascontiguousarray(a, dtype=dtype).reshape(-1)
 
 
 def atsr_alpha(
@@ -34,8 +61,7 @@ def atsr_alpha(
     sel = np.asarray(static, dtype=bool)
     if not sel.any():
         return 1.0
-    num = float(np.sum(tfi[sel], dtype=np.float64))
-    den = float(np.sum(tfp[sel], dtype=np.float64))
+    num, den = _static_sums(_flat(tfi), _flat(tfp), _flat(sel, bool))
     if not (np.isfinite(num) and np.isfinite(den)) or num <= 0.0 or den <= 0.0:
         return 1.0
     return float(np.clip(num / den, 1.0 / alpha_max, alpha_max))
@@ -74,7 +100,12 @@ def atsr_fuse(
     m = np.asarray(mask, dtype=bool)
     ref = dynamic if tfi is None else tfi
     alpha = atsr_alpha(ref, tfp, ~m, alpha_max=alpha_max)
-    out = np.where(m, dynamic, np.float32(alpha) * tfp).astype(np.float32)
-    np.nan_to_num(out, copy=False, nan=0.0, posinf=1.0, neginf=0.0)
-    np.clip(out, 0.0, 1.0, out=out)
+    out = np.empty(m.shape, np.float32)
+    _paste_kernel(
+        _flat(dynamic, np.float32),
+        _flat(tfp, np.float32),
+        _flat(m, bool),
+        np.float32(alpha),
+        out.reshape(-1),
+    )
     return out, alpha

@@ -273,7 +273,7 @@ def _static_kernel(
     d_hi,
     logs,
     ub,
-    cnt,
+    tfp,
     daisi,
 ):  # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
@@ -281,13 +281,16 @@ def _static_kernel(
     Per pixel, on words of ``[lo, hi)``: ``ub``, the distinct ISIs of the union
     ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at ``theta``): every window's
     ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
-    the spike counts ``cnt[j]`` in ``[bounds[ia[j]], bounds[ib[j]])`` (the TFP windows of the
-    history frames and of t; they share edges, so each distinct edge is counted once); DAISI
-    at t.
+    the TFP rates ``tfp[j]`` (Eq. 4: spikes in ``[bounds[ia[j]], bounds[ib[j]])`` over the
+    window's length; the windows of the history frames and of t share edges, so each distinct
+    edge is counted once); DAISI at t.
     """
     h, w = ub.shape
     n_win = ia.shape[0]
     nb = bounds.shape[0]
+    lens = np.empty(n_win, np.float64)
+    for j in range(n_win):
+        lens[j] = max(1, bounds[ib[j]] - bounds[ia[j]])
     nw = (hi - lo + 63) >> 6
     for y in prange(h):
         words = np.empty((w + 80, nw), np.uint64)
@@ -303,7 +306,7 @@ def _static_kernel(
             for i in range(nb):
                 before[i] = count_range(words, r, lo, prefix, lo, bounds[i])
             for j in range(n_win):
-                cnt[j, y, x] = before[ib[j]] - before[ia[j]]
+                tfp[j, y, x] = np.float32((before[ib[j]] - before[ia[j]]) / lens[j])
             daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs)
 
 
@@ -520,7 +523,7 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
     bounds, inv = np.unique(wins, return_inverse=True)
     inv = inv.reshape(wins.shape)
     ub = np.empty((h, w), np.int32)
-    counts_all = np.empty((k + 1, h, w), np.int32)
+    tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
     _static_kernel(
         src.packed,
@@ -540,15 +543,13 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
         d_hi,
         log_table(d_hi - d_lo),
         ub,
-        counts_all,
+        tfps,
         daisi,
     )
-    cnt, pcnt = counts_all[:k], counts_all[k]
-    tfps = [(cnt[j] / np.float32(max(1, tb[j] - ta[j]))).astype(np.float32) for j in range(k)]
-    tfp = (pcnt / np.float32(max(1, pb - pa))).astype(np.float32)
+    tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
         return {
-            "rates": np.clip(np.stack(tfps), 0.0, 1.0),
+            "rates": tfps[:k],  # TFP rates, in [0, 1] already (count <= window length)
             "coarse": np.zeros((h, w), bool),
             "tfi": lambda: _tfi_at(src, center, m),
             "tfp": tfp,

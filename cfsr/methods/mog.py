@@ -25,15 +25,34 @@ OpenCV is imported lazily here, so ``import cfsr`` does not load it.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
 
 __all__ = ["to_u8", "mog_background", "mog_objects"]
 
 
+@njit(parallel=True, cache=True)
+def _u8_kernel(r, scale, out):  # pragma: no cover - numba
+    for i in prange(r.size):
+        v = r[i]
+        if np.isnan(v) or v < 0:  # NaN and -inf are dark
+            out[i] = 0
+        else:  # +inf is the gain itself: 255
+            q = np.rint(v * scale)
+            out[i] = 255 if not q < 255 else np.uint8(q)
+    return out
+
+
 def to_u8(rates: np.ndarray, gain: float) -> np.ndarray:
-    """Rates (spikes/step) to the 8-bit scale MOG works on: ``clip(rate / gain * 255)``."""
+    """Rates (spikes/step) to the 8-bit scale MOG works on: ``clip(rint(rate / gain * 255))``.
+
+    NaN and negative rates give 0, ``+inf`` gives 255; a non-positive or non-finite ``gain``
+    falls back to 1. One pass (the MOG history is 12 frames per output).
+    """
     g = float(gain) if np.isfinite(gain) and gain > 0 else 1.0
-    r = np.nan_to_num(np.asarray(rates, dtype=np.float32), nan=0.0, posinf=g, neginf=0.0)
-    return np.clip(np.rint(r * np.float32(255.0 / g)), 0, 255).astype(np.uint8)
+    r = np.ascontiguousarray(rates, dtype=np.float32)
+    out = np.empty(r.shape, np.uint8)
+    _u8_kernel(r.reshape(-1), np.float32(255.0 / g), out.reshape(-1))
+    return out
 
 
 def mog_background(
