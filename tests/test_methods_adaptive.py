@@ -242,3 +242,23 @@ def test_patchmatch_frames_on_tiles_equal_the_whole_box_where_computed():
         if box[0] % cf.TILE == 0:  # unmarked tiles hold the fill value: not computed
             assert (raw_t[:, ~px] == 1.0).all()
             assert (raw_b[:, ~px] != 1.0).any()
+
+
+@pytest.mark.parametrize("trial", range(6))
+def test_fine_mask_on_the_cues_bounding_box_equals_the_whole_frame(trial):
+    rng = np.random.default_rng(40 + trial)
+    h, w = 90, 120
+    cues = np.zeros((3, h, w), bool)
+    for _ in range(int(rng.integers(1, 5))):  # blobs with holes, specks, some at the border
+        y, x = int(rng.integers(0, h)), int(rng.integers(0, w))
+        r = int(rng.integers(2, 15))
+        yy, xx = np.ogrid[:h, :w]
+        d = (yy - y) ** 2 + (xx - x) ** 2
+        cues[int(rng.integers(0, 3))] |= (d <= r * r) & (d >= (r // 2) ** 2)
+    cues[2] |= rng.random((h, w)) < 0.002
+    kw = {"close_size": (0, 5, 9)[trial % 3], "min_area": (1, 16)[trial % 2], "dilate": trial % 3}
+    got = cf.fine_mask(*cues, **kw)
+    want = cf._fine_mask_crop(
+        cues[0] | cues[1] | cues[2], kw["close_size"], kw["min_area"], kw["dilate"]
+    )
+    np.testing.assert_array_equal(got, want)

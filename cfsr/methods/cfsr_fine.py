@@ -468,11 +468,24 @@ def fine_mask(
     dilate: int = 0,
 ) -> np.ndarray:
     """Fine dynamic mask: union of the cues, closed, holes filled, small components dropped."""
-    from scipy import ndimage as ndi
-
     m = np.asarray(coarse, bool) | np.asarray(objects, bool) | np.asarray(edges, bool)
     if not m.any():
         return m
+    # work on the mask's bounding box with a margin the closing and the dilation cannot
+    # cross (and one pixel of background around it, so hole filling sees the same outside)
+    ys, xs = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
+    pad = max(0, int(close_size)) + max(0, int(dilate)) + 2
+    h, w = m.shape
+    y0, y1 = max(0, ys[0] - pad), min(h, ys[-1] + pad + 1)
+    x0, x1 = max(0, xs[0] - pad), min(w, xs[-1] + pad + 1)
+    out = np.zeros((h, w), bool)
+    out[y0:y1, x0:x1] = _fine_mask_crop(m[y0:y1, x0:x1], close_size, min_area, dilate)
+    return out
+
+
+def _fine_mask_crop(m: np.ndarray, close_size: int, min_area: int, dilate: int) -> np.ndarray:
+    from scipy import ndimage as ndi
+
     if close_size > 1:
         import cv2
 
