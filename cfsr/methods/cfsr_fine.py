@@ -275,6 +275,8 @@ def _static_kernel(
     ub,
     tfp,
     daisi,
+    store,
+    bases,
 ):  # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
 
@@ -283,7 +285,8 @@ def _static_kernel(
     ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
     the TFP rates ``tfp[j]`` (Eq. 4: spikes in ``[bounds[ia[j]], bounds[ib[j]])`` over the
     window's length; the windows of the history frames and of t share edges, so each distinct
-    edge is counted once); DAISI at t.
+    edge is counted once); DAISI at t. The words stay in ``store[y]`` (pixel ``x`` of row ``y``
+    at ``bases[y, 0] + bases[y, 1] * x``) for the second pass.
     """
     h, w = ub.shape
     n_win = ia.shape[0]
@@ -293,12 +296,14 @@ def _static_kernel(
         lens[j] = max(1, bounds[ib[j]] - bounds[ia[j]])
     nw = (hi - lo + 63) >> 6
     for y in prange(h):
-        words = np.empty((w + 80, nw), np.uint64)
+        words = store[y]
         big = np.empty((hi - lo) // 64 + 1, np.int64)
         loc = np.empty(2 * dspan + 8, np.int64)
         prefix = np.empty(nw + 1, np.int64)
         before = np.empty(nb, np.int64)
         base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        bases[y, 0] = base
+        bases[y, 1] = step
         for x in range(w):
             r = base + step * x
             ub[y, x] = distinct_in_words(words, r, nw, lo, u_lo, u_hi, span, big, theta)
@@ -311,23 +316,31 @@ def _static_kernel(
 
 
 @njit(parallel=True, cache=True)
-def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi):
+def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, store, bases):
     # pragma: no cover - numba
     """Second pass, run only when some pixel was not proven static: the TFI interval at
     every history step (the ATSR scale of Eq. 7 needs it on the static region too) and the
     exact distinct-ISI counts (sliding histogram, distinction.py) where ``ub >= theta``;
-    elsewhere ``counts`` is ``ub``, below ``theta`` like every window's own count."""
+    elsewhere ``counts`` is ``ub``, below ``theta`` like every window's own count.
+    Reads the first pass's words (``store``, ``bases``, steps from ``lo``) when it holds one
+    row per image row; otherwise gathers them."""
     n = packed.shape[0]
     h, w = ub.shape
     k_count = ends.shape[0]
     nw = (hi - lo + 63) >> 6
     u_lo = max(0, ends[0] - span + 1)
     u_hi = ends[k_count - 1] + 1
+    stored = store.shape[0] == h
     for y in prange(h):
-        words = np.empty((w + 80, nw), np.uint64)
         tv = np.empty(hi - lo + 1, np.int64)
         hist = np.zeros(span + 1, np.int32)
-        base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        if stored:
+            words = store[y]
+            base = bases[y, 0]
+            step = bases[y, 1]
+        else:
+            words = np.empty((w + 80, nw), np.uint64)
+            base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):
             r = base + step * x
             for k in range(k_count):
@@ -528,8 +541,9 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
     pa, pb = tfp_span(center, n, p["tfp_window"], p["tfp_mode"])
     d_lo, d_hi = max(0, center - dspan - m), min(n, center + dspan + m + 1)
     u_lo, u_hi = max(0, int(ends[0]) - span + 1), int(ends[-1]) + 1
-    lo = max(0, min(u_lo, int(ta.min()), pa, d_lo))
-    hi = min(n, max(u_hi, int(tb.max()), pb, d_hi))
+    # the words cover both passes (the second reads TFI intervals up to max_isi around ends)
+    lo = max(0, min(u_lo, int(ta.min()), pa, d_lo, int(ends[0]) - m))
+    hi = min(n, max(u_hi, int(tb.max()), pb, d_hi, int(ends[-1]) + m + 1))
     k = ends.size
     # the K history TFP windows and the one at t, as indices into their sorted distinct edges
     wins = np.concatenate([np.stack([ta, tb], 1), [[pa, pb]]]).astype(np.int64)
@@ -538,6 +552,8 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
+    store = np.empty((h, w + 80, (hi - lo + 63) >> 6), np.uint64)
+    bases = np.empty((h, 2), np.int64)
     _static_kernel(
         src.packed,
         src.geo,
@@ -558,6 +574,8 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
         ub,
         tfps,
         daisi,
+        store,
+        bases,
     )
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
@@ -568,11 +586,11 @@ def _history(src: _Spikes, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
             "tfp": tfp,
             "daisi": daisi,
         }
-    lo2 = max(0, min(u_lo, int(ends[0]) - m))
-    hi2 = min(n, int(ends[-1]) + m + 1)
     counts = np.empty((k, h, w), np.int32)
     isi = np.empty((k, h, w), np.int32)
-    _dynamic_kernel(src.packed, src.geo, lo2, hi2, ends, span, theta, m, ub, counts, isi)
+    _dynamic_kernel(
+        src.packed, src.geo, lo, hi, ends, span, theta, m, ub, counts, isi, store, bases
+    )
     masks = counts >= theta
     rates = np.empty((k, h, w), np.float32)
     for j in range(k):
@@ -601,6 +619,8 @@ def _tfi_at(src: _Spikes, center: int, m: int) -> np.ndarray:
         np.zeros((src.h, src.w), np.int32),
         np.empty_like(isi),
         isi,
+        np.empty((0, 0, 0), np.uint64),  # no stored words: gather them
+        np.empty((0, 2), np.int64),
     )
     return (1.0 / isi[0]).astype(np.float32)
 
