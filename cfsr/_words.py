@@ -98,12 +98,14 @@ def transpose64(a):  # pragma: no cover - numba
     j = 32
     m = np.uint64(0x00000000FFFFFFFF)
     while j != 0:
-        k = 0
-        while k < 64:
-            t = ((a[k] >> np.uint64(j)) ^ a[k + j]) & m
-            a[k + j] ^= t
-            a[k] ^= t << np.uint64(j)
-            k = (k + j + 1) & ~j
+        # the pairs (k, k + j) of one round: blocks of 2j words, j contiguous pairs each (a
+        # loop the compiler can vectorise)
+        sj = np.uint64(j)
+        for b in range(0, 64, 2 * j):
+            for k in range(b, b + j):
+                t = ((a[k] >> sj) ^ a[k + j]) & m
+                a[k + j] ^= t
+                a[k] ^= t << sj
         j >>= 1
         m ^= m << np.uint64(j)
 

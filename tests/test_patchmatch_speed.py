@@ -84,3 +84,37 @@ def test_temporal_schedule_is_thread_independent_and_crop_invariant():
     # the plain schedule is still there and differs (another search)
     plain = patchmatch_fuse(ref, ref, tg, tg, mask, iters=2, max_radius=8, seed=2**40 + 3)
     assert not np.array_equal(plain, one)
+
+
+def test_block_ssd_matches_numpy():
+    from numba import njit
+
+    from cfsr.methods.patchmatch import _box6x8
+
+    @njit
+    def run(ref, tgt, y, x, ty, tx, out):
+        w = ref.shape[1]
+        _box6x8(ref, tgt, y * w + x, ty * w + tx, w, out)
+
+    rng = np.random.default_rng(5)
+    ref = rng.random((30, 40)).astype(np.float32)
+    tgt = rng.random((30, 40)).astype(np.float32)
+    out = np.zeros(8, np.float32)
+    run(ref, tgt, 4, 7, 9, 11, out)
+    want = [((ref[4:10, 7 + k : 13 + k] - tgt[9:15, 11 + k : 17 + k]) ** 2).sum() for k in range(8)]
+    np.testing.assert_allclose(out, want, rtol=1e-5)
+
+
+def test_temporal_schedule_other_patch_sizes():
+    # patch sizes other than 6 take the generic (scalar) block path
+    steps = _steps(count=4)
+    ref, tg = _moving(steps, v=(1 / 3, 1 / 3), seed=3)
+    mask = np.zeros(ref.shape, bool)
+    mask[30:60, 40:80] = True
+    for patch in (3, 7):
+        ys, xs, off, cost = nnf_multi(
+            ref, tg, mask, patch=patch, iters=2, max_radius=8, offsets_steps=steps
+        )
+        for k, s in enumerate(steps):
+            hit = (off[k, :, 0] == round(s / 3)) & (off[k, :, 1] == round(s / 3))
+            assert hit.mean() > 0.99, (patch, s, hit.mean())

@@ -9,28 +9,42 @@ patch search.
 The nearest-neighbour field (NNF) per target is found with PatchMatch (Barnes et al., 2009):
 alternating forward/backward scans that try the offsets of the already-visited left/up
 (right/down) neighbours (propagation) and random offsets around the current best at radii
-``max_radius, max_radius/2, ..., 1`` (random search). The sum of squared differences (SSD) over
-the patch stops early once it exceeds the current best. Only the masked pixels are visited.
+``max_radius, max_radius/2, ..., 1`` (random search). Only the masked pixels are visited.
 
 Two schedules:
 
 * Without ``offsets_steps`` (the original form): every target starts from zero motion and gets
-  the full search; the targets are independent and run in parallel.
+  the full search, pixel by pixel (the SSD over the patch stops early once it exceeds the
+  current best); the targets are independent and run in parallel.
 * With ``offsets_steps`` (each target's signed step from t), the temporal schedule: motion over
   these short spans is smooth, so the targets run by increasing ``|step|`` and each starts from
   offsets *predicted* from the NNFs already found - the nearer target on the same side scaled by
   the step ratio (linear motion), the mirror target negated, and the quadratic through the
-  nearest pair ``t -+ u`` (curved paths: rotation) - keeping the best of them per pixel. A
-  predicted target then needs only a local search (``near_radius``, ``near_iters`` scans); only
-  the first target gets the full one. Targets now depend on each other, so the parallelism is
-  over bands of ``band`` full-frame rows instead (propagation stays inside a band). On the
-  simulated disk/fan/car scenes this halves the CPU time at equal PSNR (see ``nnf_multi``).
+  nearest pair ``t -+ u`` (curved paths: rotation). A predicted target then needs only a local
+  search (``near_radius``, ``near_iters`` scans); only the first target gets the full one
+  (zero-motion start, ``max_radius``, ``iters`` scans). Targets depend on each other, so the
+  parallelism is over bands of ``band`` full-frame rows instead (propagation stays inside a
+  band).
 
-Randomness comes from a counter-based hash of (seed, target, the pixel's full-frame position,
-iteration, radius), and the bands are cut at fixed full-frame rows, so the result does not depend
-on thread scheduling or the number of threads (the same window always gives the same frame,
-which keeps the streaming and whole-array paths identical) nor on which other pixels are matched
-(a crop and the whole frame draw alike).
+  This schedule searches *blocks*: the masked pixels of one row inside one 8-column cell of the
+  full frame. Each candidate offset is tried for every pixel of the block at once, and each
+  pixel keeps its own best. The candidates of a block are the union of its pixels' predicted
+  offsets (first scan), the offsets of the already-visited neighbours (the row above/below the
+  block and the pixel before/after it: propagation), and, at radii ``r, r/2, ..., 1``, one
+  random offset around each distinct current best of the block. For the 6 x 6 patch the eight
+  SSDs of a block share their rows: the squared differences of the 6 rows are summed per column
+  over 16 columns with 8-wide vectors, then box-summed over 6 columns (:func:`_box6x8`; about 4x
+  cheaper than eight scalar SSDs, with no early exit); other patch sizes use the same per-column
+  sums in scalar code, and offsets that leave the frame for some pixel of the block fall back to
+  clamped per-pixel SSDs. On the simulated disk/fan/car scenes this is 1.7-2x faster than the
+  per-pixel schedule at equal or better PSNR.
+
+Randomness comes from a counter-based hash of (seed, target, the pixel's - or, in the temporal
+schedule, the block's - full-frame position, iteration, radius), and the bands and blocks are cut
+at fixed full-frame rows and columns, so the result does not depend on thread scheduling or the
+number of threads (the same window always gives the same frame, which keeps the streaming and
+whole-array paths identical) nor on which other pixels are matched (a crop and the whole frame
+draw alike, away from the crop's borders).
 
 Matching happens on a *guide* (a lightly smoothed TFI): matching the raw TFI locks onto its
 quantisation noise. The averaged values are the raw TFI rates at the matched positions.
@@ -47,9 +61,14 @@ correspondence algorithm for structural image editing", ACM TOG 28(3), 2009.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 __all__ = ["nnf_multi", "fuse_matches", "patchmatch_fuse"]
+
+# right-hand padding columns beyond the patch's for the block search (16-column reads)
+_EXTRA = 10
 
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
 _MIX2 = np.uint64(0x94D049BB133111EB)
@@ -125,14 +144,25 @@ def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     return _ssd(ref, tgt, y, x, ty, tx, patch, limit)
 
 
-def _pad(img: np.ndarray, patch: int) -> np.ndarray:
-    """Edge-replicate padding of the last two axes for :func:`_ssd` (float32, contiguous)."""
+def _pad(img: np.ndarray, patch: int, extra: int = 0) -> np.ndarray:
+    """Edge-replicate padding of the last two axes for :func:`_ssd` (float32, contiguous).
+
+    ``extra`` more columns on the right (edge values too) let the block search read 16 columns
+    from any block start inside the frame. The same values as ``np.pad(..., mode="edge")``,
+    written by slice assignments (several times faster on the target stack).
+    """
     # (patch - 1) // 2 before: the 2-before/3-after 6 x 6 patch of the paper's default, and a
     # centred window for odd sizes (patch // 2 - 1 went negative for a 1 x 1 patch)
     lo = (patch - 1) // 2
-    hi = patch - 1 - lo
-    width = [(0, 0)] * (img.ndim - 2) + [(lo, hi), (lo, hi)]
-    return np.ascontiguousarray(np.pad(img, width, mode="edge"), dtype=np.float32)
+    hi = patch - 1 - lo + extra
+    hh, ww = img.shape[-2:]
+    out = np.empty(img.shape[:-2] + (hh + lo + patch - 1 - lo, ww + lo + hi), np.float32)
+    out[..., lo : lo + hh, lo : lo + ww] = img
+    out[..., :lo, lo : lo + ww] = img[..., :1, :]
+    out[..., lo + hh :, lo : lo + ww] = img[..., -1:, :]
+    out[..., :, :lo] = out[..., :, lo : lo + 1]
+    out[..., :, lo + ww :] = out[..., :, lo + ww - 1 : lo + ww]
+    return out
 
 
 @njit(parallel=True, cache=True)
@@ -197,100 +227,260 @@ def _nnf_kernel(ref, targets, ys, xs, keys, index, patch, iters, max_r, seed, of
     return off, cost
 
 
+@intrinsic
+def _box6x8(typingctx, ref, tgt, rb, tb, stride, out):
+    """SSD of eight horizontally adjacent 6 x 6 patches (AVX-width vectors, no early exit).
+
+    ``ref``/``tgt`` are C-contiguous float32 2-D arrays with row length ``stride``; the patches
+    start at flat positions ``rb + k`` and ``tb + k`` (k = 0..7), reading 16 columns per row.
+    ``out[k]`` = sum over the 6 rows and 6 columns of the squared differences: each row's
+    squared differences summed over the rows per column first, then the 6-column box sums.
+    """
+    sig = types.void(ref, tgt, types.int64, types.int64, types.int64, out)
+
+    def codegen(context, builder, signature, args):
+        ra, ta, rb_, tb_, st_, oa = args
+        rty, tty, rbt, tbt, stt, oty = signature.args
+        i64 = ir.IntType(64)
+        rb_ = context.cast(builder, rb_, rbt, types.int64)
+        tb_ = context.cast(builder, tb_, tbt, types.int64)
+        st_ = context.cast(builder, st_, stt, types.int64)
+        rp = context.make_array(rty)(context, builder, ra).data
+        tp = context.make_array(tty)(context, builder, ta).data
+        op = context.make_array(oty)(context, builder, oa).data
+        v8 = ir.VectorType(ir.FloatType(), 8)
+
+        def load(p, idx):
+            return builder.load(builder.bitcast(builder.gep(p, [idx]), v8.as_pointer()), align=4)
+
+        lo = hi = None
+        eight = ir.Constant(i64, 8)
+        for r in range(6):
+            rr = builder.add(rb_, builder.mul(st_, ir.Constant(i64, r)))
+            tr = builder.add(tb_, builder.mul(st_, ir.Constant(i64, r)))
+            d0 = builder.fsub(load(rp, rr), load(tp, tr))
+            d1 = builder.fsub(load(rp, builder.add(rr, eight)), load(tp, builder.add(tr, eight)))
+            q0 = builder.fmul(d0, d0)
+            q1 = builder.fmul(d1, d1)
+            lo = q0 if lo is None else builder.fadd(lo, q0)
+            hi = q1 if hi is None else builder.fadd(hi, q1)
+        s = lo
+        for j in range(1, 6):
+            mask = ir.Constant(ir.VectorType(ir.IntType(32), 8), list(range(j, j + 8)))
+            s = builder.fadd(s, builder.shuffle_vector(lo, hi, mask))
+        builder.store(s, builder.bitcast(op, v8.as_pointer()), align=4)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
 @njit(cache=True, inline="always")
-def _try(ref, tgt, y, x, cy, cx, h, w, patch, best, by, bx):  # pragma: no cover - numba
-    """Try offset (cy, cx) (clamped into the frame) against the best (``best``, ``by``, ``bx``)."""
-    ty = _clamp(y + cy, 0, h - 1)
-    tx = _clamp(x + cx, 0, w - 1)
-    if ty - y == by and tx - x == bx:  # already the best: do not evaluate it again
-        return best, by, bx
-    c = _cost(ref, tgt, y, x, ty, tx, patch, best)
-    if c < best:
-        return c, ty - y, tx - x
-    return best, by, bx
+def _add_cand(cand, nc, cy, cx):  # pragma: no cover - numba
+    """Append (cy, cx) to the first ``nc`` rows of ``cand`` unless already there."""
+    for k in range(nc):
+        if cand[k, 0] == cy and cand[k, 1] == cx:
+            return nc
+    cand[nc, 0] = cy
+    cand[nc, 1] = cx
+    return nc + 1
+
+
+@njit(cache=True, inline="always")
+def _eval_block(ref, tgt, xs, p0, p1, y, cy, cx, h, w, patch, cs, off, cost):
+    # pragma: no cover - numba
+    """Try offset (cy, cx) for the block's pixels ``p0 .. p1 - 1`` (one row, at most 8 apart).
+
+    Inside the frame the block shares its rows: the squared differences of the ``patch`` rows
+    are summed per column once (``8 + patch - 1`` columns), and each pixel's SSD is the sum of
+    its ``patch`` columns. Where the offset leaves the frame for some pixel, each pixel is
+    clamped and evaluated on its own, as in the scalar search.
+    """
+    xb = xs[p0]
+    xl = xs[p1 - 1]
+    ty = y + cy
+    if ty >= 0 and ty < h and xb + cx >= 0 and xl + cx < w:
+        if patch == 6:
+            stride = ref.shape[1]
+            _box6x8(ref, tgt, y * stride + xb, ty * stride + xb + cx, stride, cs)
+            for k in range(p0, p1):
+                c = cs[xs[k] - xb]
+                if c < cost[k]:
+                    cost[k] = c
+                    off[k, 0] = cy
+                    off[k, 1] = cx
+        else:
+            nw = xl - xb + patch
+            for c in range(nw):
+                cs[c] = 0.0
+            for r in range(patch):
+                rr = ref[y + r]
+                qr = tgt[ty + r]
+                for c in range(nw):
+                    d = rr[xb + c] - qr[xb + cx + c]
+                    cs[c] += d * d
+            for k in range(p0, p1):
+                o = xs[k] - xb
+                s = np.float32(0.0)
+                for c in range(patch):
+                    s += cs[o + c]
+                if s < cost[k]:
+                    cost[k] = s
+                    off[k, 0] = cy
+                    off[k, 1] = cx
+    else:
+        for k in range(p0, p1):
+            x = xs[k]
+            qy = _clamp(y + cy, 0, h - 1)
+            qx = _clamp(x + cx, 0, w - 1)
+            s = _cost(ref, tgt, y, x, qy, qx, patch, cost[k])
+            if s < cost[k]:
+                cost[k] = s
+                off[k, 0] = qy - y
+                off[k, 1] = qx - x
 
 
 @njit(parallel=True, cache=True)
-def _nnf_temporal(
-    ref, targets, ys, xs, keys, index, bands, order, src, wt, radius, scans, patch, seed, off, cost
+def _nnf_blocks(
+    ref,
+    targets,
+    ys,
+    xs,
+    bkeys,
+    blocks,
+    index,
+    bands,
+    order,
+    src,
+    wt,
+    radius,
+    scans,
+    patch,
+    seed,
+    off,
+    cost,
 ):  # pragma: no cover - numba
     h = targets.shape[1] - patch + 1
-    w = targets.shape[2] - patch + 1
+    w = targets.shape[2] - (patch - 1) - _EXTRA
     n_c = src.shape[1]
     # bands of rows are independent (propagation stays inside a band), so they run in parallel
     # with a result that does not depend on the number of threads; inside a band the targets
     # run in ``order`` because each is initialised from those before it
     for b in prange(bands.shape[0] - 1):
-        j0 = bands[b]
-        j1 = bands[b + 1]
-        for q in range(order.shape[0]):
-            i = order[q]
+        q0 = bands[b]
+        q1 = bands[b + 1]
+        j0 = blocks[q0]
+        j1 = blocks[q1]
+        cs = np.empty(16 + patch, np.float32)
+        cand = np.empty((64, 2), np.int64)
+        for o in range(order.shape[0]):
+            i = order[o]
             tgt = targets[i]
-            # initialisation: the best of the predicted offsets (zero motion without predictor)
+            offi = off[i]
+            costi = cost[i]
             for j in range(j0, j1):
-                y = ys[j]
-                x = xs[j]
-                by = np.int64(0)
-                bx = np.int64(0)
-                best = np.inf
-                for c in range(n_c):
-                    if src[i, c, 0] < 0:
-                        break
-                    py = 0.0
-                    px = 0.0
-                    for k in range(2):
-                        s = src[i, c, k]
-                        if s >= 0:
-                            py += wt[i, c, k] * off[s, j, 0]
-                            px += wt[i, c, k] * off[s, j, 1]
-                    cy = _clamp(np.int64(np.floor(py + 0.5)), -y, h - 1 - y)
-                    cx = _clamp(np.int64(np.floor(px + 0.5)), -x, w - 1 - x)
-                    if c > 0 and cy == by and cx == bx:
-                        continue
-                    cc = _cost(ref, tgt, y, x, y + cy, x + cx, patch, best)
-                    if c == 0 or cc < best:
-                        best = cc
-                        by = cy
-                        bx = cx
-                if src[i, 0, 0] < 0:
-                    best = _cost(ref, tgt, y, x, y, x, patch, np.inf)
-                off[i, j, 0] = by
-                off[i, j, 1] = bx
-                cost[i, j] = best
+                costi[j] = np.inf
+            predicted = src[i, 0, 0] >= 0
             max_r = radius[i]
             for it in range(scans[i]):
                 fwd = it % 2 == 0
                 d = -1 if fwd else 1
-                for jj in range(j0, j1):
-                    j = jj if fwd else j0 + j1 - 1 - jj
-                    y = ys[j]
-                    x = xs[j]
-                    by = np.int64(off[i, j, 0])
-                    bx = np.int64(off[i, j, 1])
-                    best = np.float64(cost[i, j])
-                    # propagation from the already-visited neighbours of the same band
-                    for k in range(2):
-                        ny = y + d if k == 1 else y
-                        nx = x + d if k == 0 else x
-                        if ny < 0 or ny >= h or nx < 0 or nx >= w:
-                            continue
-                        nj = index[ny, nx]
-                        if nj < j0 or nj >= j1:
-                            continue
-                        cy = np.int64(off[i, nj, 0])
-                        cx = np.int64(off[i, nj, 1])
-                        best, by, bx = _try(ref, tgt, y, x, cy, cx, h, w, patch, best, by, bx)
-                    # random search around the current best at halving radii
+                for qq in range(q0, q1):
+                    q = qq if fwd else q0 + q1 - 1 - qq
+                    p0 = blocks[q]
+                    p1 = blocks[q + 1]
+                    y = ys[p0]
+                    nc = 0
+                    if it == 0:
+                        if predicted:
+                            # the predicted offsets of every pixel of the block (a pixel whose
+                            # sources match those of the one before predicts the same offset)
+                            for c in range(n_c):
+                                s0 = src[i, c, 0]
+                                if s0 < 0:
+                                    break
+                                s1 = src[i, c, 1]
+                                w0 = wt[i, c, 0]
+                                w1 = wt[i, c, 1]
+                                ay = np.int64(-(1 << 40))
+                                ax = ay
+                                by = ay
+                                bx = ay
+                                for k in range(p0, p1):
+                                    ky = np.int64(off[s0, k, 0])
+                                    kx = np.int64(off[s0, k, 1])
+                                    ly = np.int64(0)
+                                    lx = np.int64(0)
+                                    if s1 >= 0:
+                                        ly = np.int64(off[s1, k, 0])
+                                        lx = np.int64(off[s1, k, 1])
+                                    if ky == ay and kx == ax and ly == by and lx == bx:
+                                        continue
+                                    ay = ky
+                                    ax = kx
+                                    by = ly
+                                    bx = lx
+                                    py = w0 * ky + w1 * ly
+                                    px = w0 * kx + w1 * lx
+                                    cy = np.int64(np.floor(py + 0.5))
+                                    cx = np.int64(np.floor(px + 0.5))
+                                    nc = _add_cand(cand, nc, cy, cx)
+                        else:
+                            nc = _add_cand(cand, nc, 0, 0)
+                    # propagation: the offsets of the already-visited neighbours in the band
+                    # (the row above/below the block, the pixel before/after it)
+                    ny = y + d
+                    if ny >= 0 and ny < h:
+                        for k in range(p0, p1):
+                            nj = index[ny, xs[k]]
+                            if nj >= j0 and nj < j1:
+                                nc = _add_cand(cand, nc, offi[nj, 0], offi[nj, 1])
+                    nx = xs[p0] - 1 if fwd else xs[p1 - 1] + 1
+                    if nx >= 0 and nx < w:
+                        nj = index[y, nx]
+                        if nj >= j0 and nj < j1:
+                            nc = _add_cand(cand, nc, offi[nj, 0], offi[nj, 1])
+                    for c in range(nc):
+                        _eval_block(
+                            ref,
+                            tgt,
+                            xs,
+                            p0,
+                            p1,
+                            y,
+                            cand[c, 0],
+                            cand[c, 1],
+                            h,
+                            w,
+                            patch,
+                            cs,
+                            offi,
+                            costi,
+                        )
+                    # random search around each distinct best of the block at halving radii
                     r = max_r
                     while r >= 1:
-                        ry, rx = _rand2(seed, i, keys[j], it * 64 + r, r)
-                        best, by, bx = _try(
-                            ref, tgt, y, x, by + ry, bx + rx, h, w, patch, best, by, bx
-                        )
+                        nb = 0
+                        for k in range(p0, p1):
+                            nb = _add_cand(cand, nb, offi[k, 0], offi[k, 1])
+                        for u in range(nb):
+                            ry, rx = _rand2(seed, i, bkeys[q] * 8 + u, it * 64 + r, r)
+                            _eval_block(
+                                ref,
+                                tgt,
+                                xs,
+                                p0,
+                                p1,
+                                y,
+                                cand[u, 0] + ry,
+                                cand[u, 1] + rx,
+                                h,
+                                w,
+                                patch,
+                                cs,
+                                offi,
+                                costi,
+                            )
                         r //= 2
-                    off[i, j, 0] = by
-                    off[i, j, 1] = bx
-                    cost[i, j] = best
     return off, cost
 
 
@@ -411,16 +601,25 @@ def nnf_multi(
             order, src, wt, radius, scans = _temporal_plan(
                 offsets_steps, iters, max_radius, near_radius, near_iters
             )
+            # blocks of masked pixels in one row and one 8-column cell of the full frame, and
             # bands of ``band`` full-frame rows: a crop and the whole frame cut alike
-            bid = (ys + int(origin[0])) // max(1, int(band))
+            fy = ys + int(origin[0])
+            cell = (xs + int(origin[1])) // 8
+            new = np.ones(ys.size, bool)
+            new[1:] = (np.diff(fy) != 0) | (np.diff(cell) != 0)
+            blocks = np.append(np.nonzero(new)[0], ys.size).astype(np.int64)
+            bfy = fy[blocks[:-1]]
+            bkeys = bfy * np.int64(1 << 20) + cell[blocks[:-1]]
+            bid = bfy // max(1, int(band))
             cuts = np.nonzero(np.diff(bid))[0] + 1
-            bands = np.concatenate([[0], cuts, [ys.size]]).astype(np.int64)
-            _nnf_temporal(
-                _pad(ref, patch),
-                _pad(targets, patch),
+            bands = np.concatenate([[0], cuts, [blocks.size - 1]]).astype(np.int64)
+            _nnf_blocks(
+                _pad(ref, patch, _EXTRA),
+                _pad(targets, patch, _EXTRA),
                 ys,
                 xs,
-                keys,
+                bkeys,
+                blocks,
                 index,
                 bands,
                 order,
@@ -453,19 +652,29 @@ def nnf_multi(
 
 @njit(parallel=True, cache=True)
 def _fuse_kernel(ref_raw, raw, ys, xs, off, cost, scale, out):  # pragma: no cover - numba
+    # chunks of pixels in parallel; inside a chunk target by target (one frame at a time in
+    # cache), each pixel still summing the reference and then the targets in order
     n_t, h, w = raw.shape
-    for j in prange(ys.shape[0]):
-        y = ys[j]
-        x = xs[j]
-        acc = np.float64(ref_raw[y, x])
-        wsum = 1.0
+    m = ys.shape[0]
+    chunk = 1024
+    for ch in prange((m + chunk - 1) // chunk):
+        j0 = ch * chunk
+        j1 = min(m, j0 + chunk)
+        acc = np.empty(j1 - j0)
+        wsum = np.ones(j1 - j0)
+        for j in range(j0, j1):
+            acc[j - j0] = ref_raw[ys[j], xs[j]]
         for i in range(n_t):
-            wt = 1.0 if scale <= 0.0 else np.exp(-cost[i, j] / scale)
-            ty = _clamp(y + off[i, j, 0], 0, h - 1)
-            tx = _clamp(x + off[i, j, 1], 0, w - 1)
-            acc += wt * raw[i, ty, tx]
-            wsum += wt
-        out[j] = acc / wsum
+            for j in range(j0, j1):
+                y = ys[j]
+                x = xs[j]
+                wt = 1.0 if scale <= 0.0 else np.exp(-cost[i, j] / scale)
+                ty = _clamp(y + off[i, j, 0], 0, h - 1)
+                tx = _clamp(x + off[i, j, 1], 0, w - 1)
+                acc[j - j0] += wt * raw[i, ty, tx]
+                wsum[j - j0] += wt
+        for j in range(j0, j1):
+            out[j] = acc[j - j0] / wsum[j - j0]
     return out
 
 
