@@ -14,9 +14,11 @@ import numpy as np
 import pytest
 
 import cfsr
+from cfsr._words import PackedWindow
 from cfsr.methods import cfsr_fine as cf
 from cfsr.methods.csr import csr_frames
 from cfsr.methods.daisi import daisi_strength
+from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import get_method, resolve_params
 from cfsr.methods.tfa import adaptive_rates
 from cfsr.methods.tfi import tfi_rate, tfi_rates
@@ -50,7 +52,7 @@ def test_history_scan_equals_stand_alone_kernels(trial):
         daisi_span=int(rng.integers(0, 7)),
     )
     c = int(rng.integers(0, n))
-    got = cf._history(cf._Spikes.from_frames(s), c, p)
+    got = cf._history(PackedWindow.from_frames(s), c, p)
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     cs = [x for x in cs if x >= 0]
     rates, masks, _ = csr_frames(s, cs, {**p, "tfp_window": p["mog_window"]})
@@ -72,7 +74,7 @@ def test_patchmatch_frames_equal_tfi_and_tfa(trial):
     cs = sorted({int(x) for x in rng.integers(0, n, int(rng.integers(1, 12)))})
     rng.shuffle(cs)
     box = (2, 11, 3, 15) if trial % 2 else (1, 13, 5, 160)  # narrow, or across chunks
-    raw, guide = cf._pm_frames(cf._Spikes.from_frames(s), cs, box, p)
+    raw, guide = pm_frames(PackedWindow.from_frames(s), cs, box, p)
     crop = np.ascontiguousarray(s[:, box[0] : box[1], box[2] : box[3]])
     want = tfi_rates(crop, cs, max_isi=p["max_isi"])
     np.testing.assert_array_equal(raw, want)
@@ -196,7 +198,7 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
 
     with monkeypatch.context() as mp:
         mp.setattr(cf, "_dynamic_kernel", second_pass)
-        got = cf._history(cf._Spikes.from_frames(s), c, p)
+        got = cf._history(PackedWindow.from_frames(s), c, p)
     assert not got["coarse"].any()
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     rates, masks, _ = csr_frames(s, cs, {**p, "tfp_window": p["mog_window"]})
@@ -214,14 +216,14 @@ def test_pm_tiles_cover_the_search_margin_of_every_fine_pixel_and_skip_the_rest(
     fine[100:110, 50:60] = True  # one small object
     fine[20, 390] = True  # one pixel near the right edge
     margin = 23
-    tiles = cf.pm_tiles(fine, margin)
-    px = np.kron(tiles, np.ones((cf.TILE, cf.TILE), bool))[:250, :400]
+    tiles = pm_tiles(fine, margin)
+    px = np.kron(tiles, np.ones((TILE, TILE), bool))[:250, :400]
     import cv2
 
     reach = cv2.dilate(fine.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
     assert px[reach].all()  # everything PatchMatch and the guides' blur can read
     assert px.mean() < 0.25  # and the frame's far side is skipped
-    assert not cf.pm_tiles(np.zeros((250, 400), bool), margin).any()
+    assert not pm_tiles(np.zeros((250, 400), bool), margin).any()
 
 
 def test_patchmatch_frames_on_tiles_equal_the_whole_box_where_computed():
@@ -229,17 +231,17 @@ def test_patchmatch_frames_on_tiles_equal_the_whole_box_where_computed():
     s = _random_window(rng, 300, 70, 90)
     p = _params(max_isi=60, pm_guide=3)
     cs = [150, 120, 180]
-    tiles = np.zeros((-(-70 // cf.TILE), -(-90 // cf.TILE)), bool)
+    tiles = np.zeros((-(-70 // TILE), -(-90 // TILE)), bool)
     tiles[1, 2] = tiles[3, 4] = tiles[3, 5] = True
-    src = cf._Spikes.from_frames(s)
+    src = PackedWindow.from_frames(s)
     # a box starting on a tile row computes exactly the marked tiles; one starting inside a
     # tile row computes every crop row band that touches a marked tile (a superset)
     for box in [(16, 70, 3, 90), (5, 70, 3, 90)]:
-        raw_t, _ = cf._pm_frames(src, cs, box, p, tiles)
-        raw_b, _ = cf._pm_frames(src, cs, box, p)
-        px = np.kron(tiles, np.ones((cf.TILE, cf.TILE), bool))[box[0] : box[1], box[2] : box[3]]
+        raw_t, _ = pm_frames(src, cs, box, p, tiles)
+        raw_b, _ = pm_frames(src, cs, box, p)
+        px = np.kron(tiles, np.ones((TILE, TILE), bool))[box[0] : box[1], box[2] : box[3]]
         np.testing.assert_array_equal(raw_t[:, px], raw_b[:, px])
-        if box[0] % cf.TILE == 0:  # unmarked tiles hold the fill value: not computed
+        if box[0] % TILE == 0:  # unmarked tiles hold the fill value: not computed
             assert (raw_t[:, ~px] == 1.0).all()
             assert (raw_b[:, ~px] != 1.0).any()
 
