@@ -98,8 +98,10 @@ def mog_background(
     bgm = ~fg[:-1] if f.shape[0] > 1 else np.ones(f.shape, bool)
     n_bg = bgm.sum(axis=0)
     s = np.where(bgm, hist, 0).sum(axis=0, dtype=np.float64)
-    med = np.median(hist, axis=0)
-    background = np.where(n_bg > 0, s / np.maximum(n_bg, 1), med).astype(np.float32)
+    background = (s / np.maximum(n_bg, 1)).astype(np.float32)
+    never = n_bg == 0  # the temporal median only where MOG never saw background (it is slow)
+    if never.any():
+        background[never] = np.median(hist[:, never], axis=0).astype(np.float32)
     return fg[-1], background
 
 
