@@ -118,3 +118,28 @@ def test_temporal_schedule_other_patch_sizes():
         for k, s in enumerate(steps):
             hit = (off[k, :, 0] == round(s / 3)) & (off[k, :, 1] == round(s / 3))
             assert hit.mean() > 0.99, (patch, s, hit.mean())
+
+
+def test_block_ssd_min_keeps_the_lane_bests():
+    from numba import njit
+
+    from cfsr.methods.patchmatch import _box6x8, _box6x8_min
+
+    @njit
+    def run(ref, tgt, y, x, ty, tx, cy, cx, bc, boy, box, out):
+        w = ref.shape[1]
+        _box6x8(ref, tgt, y * w + x, ty * w + tx, w, out)
+        _box6x8_min(ref, tgt, y * w + x, ty * w + tx, w, cy, cx, bc, boy, box)
+
+    rng = np.random.default_rng(6)
+    ref = rng.random((30, 40)).astype(np.float32)
+    tgt = rng.random((30, 40)).astype(np.float32)
+    out = np.zeros(8, np.float32)
+    bc = np.full(8, np.inf, np.float32)
+    bc[::2] = 0.0  # lanes already better than any SSD keep their offsets
+    boy = np.full(8, -7, np.int32)
+    box = np.full(8, 9, np.int32)
+    run(ref, tgt, 4, 7, 9, 11, 5, 4, bc, boy, box, out)
+    np.testing.assert_array_equal(bc, np.where(np.arange(8) % 2 == 0, 0.0, out))
+    np.testing.assert_array_equal(boy, np.where(np.arange(8) % 2 == 0, -7, 5))
+    np.testing.assert_array_equal(box, np.where(np.arange(8) % 2 == 0, 9, 4))
