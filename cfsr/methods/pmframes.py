@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from cfsr._words import PackedWindow, row_words, word_times
+from cfsr._words import PackedWindow, popcount, row_words, trailing_zeros
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
@@ -44,49 +44,137 @@ def isi_from_times(tv, ns, ip, a, b):  # pragma: no cover - numba
     return b - a + 1
 
 
+@njit(cache=True, inline="always")
+def _rank(words, k, pre, q, mask):  # pragma: no cover - numba
+    """Spikes of word row ``k`` before the step at bit ``mask`` (the bits below it set) of
+    word ``q``, from the row's prefix counts ``pre``."""
+    return pre[q] + np.int64(popcount(words[k, q] & mask))
+
+
 @njit(parallel=True, cache=True)
-def _pm_kernel(packed, geo, lo, hi, y0, x0, centers, slot, m, thr, tile, runs_at, runs, raw, tfa):
+def _pm_kernel(
+    packed, geo, lo, hi, y0, x0, centers, slot, m, thr, tile, rows, runs_at, runs, raw, tfa
+):
     # pragma: no cover - numba
     """TFI rates (``1 / ISI``, float32) and TFA rates at ``centers`` (ascending; written to
-    frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the column runs
-    ``runs[runs_at[i]:runs_at[i + 1]]`` of tile row ``i``."""
+    frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the crop rows ``rows`` and, in
+    each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``.
+
+    Per pixel, the spike indices each center needs (last spike ``<= c``, first spikes
+    ``>= c - m`` and ``>= c + m + 1``) are ranks: prefix popcounts of its spike words. Only
+    the spike times a center can read are extracted (indices ``thr + 1`` below the first
+    center's interval to ``thr + 1`` above the last one's). A pixel with ``thr - 1`` more
+    spikes (at least 0) on each side of every center's interval, all inside every center's
+    range (most pixels of a lit scene), takes both rates without branches: the ISI is the
+    interval's, the TFA span :func:`grow_span`'s merge; the others follow the rules as
+    written (:func:`isi_from_times`, :func:`grow_span`).
+    """
     n = packed.shape[0]
     kc = centers.shape[0]
-    ch, cw = raw.shape[1:]
+    cw = raw.shape[2]
     nw = (hi - lo + 63) >> 6
-    for yy in prange(ch):
-        words = np.empty((cw + 80, nw), np.uint64)
+    side = max(thr - 1, 0)  # spikes a fast pixel needs beyond each center's interval
+    # per center: word and bit mask of the steps c + 1, c_lo and c_hi (ranks = spikes before)
+    qs = np.empty((kc, 3), np.int64)
+    ms = np.empty((kc, 3), np.uint64)
+    one = np.uint64(1)
+    for kk in range(kc):
+        cc = centers[kk]
+        for j, t in enumerate((cc + 1, max(0, cc - m), min(n, cc + m + 1))):
+            qs[kk, j] = (t - lo) >> 6
+            ms[kk, j] = (one << np.uint64((t - lo) & 63)) - one
+    q_ip = qs[:, 0].copy()
+    m_ip = ms[:, 0].copy()
+    uthr = np.uint64(max(thr, 0))
+    # rates (spikes per step) of an interval, and of thr intervals, of d steps: the float32
+    # of the float64 division, as the slow path writes them
+    rec = np.empty(hi - lo + 1, np.float32)
+    rec_t = np.empty(hi - lo + 1, np.float32)
+    rec[0] = rec_t[0] = 0.0
+    for d in range(1, hi - lo + 1):
+        rec[d] = np.float32(1.0 / d)
+        rec_t[d] = thr / d
+    for ir in prange(rows.shape[0]):
+        yy = rows[ir]
+        words = np.empty((cw + 80, nw + 1), np.uint64)
+        words[:, nw] = 0  # the step hi may fall on word nw
         tv = np.empty(hi - lo + 1, np.int64)
+        pre = np.empty(nw + 2, np.int64)
+        b_raw = np.empty((kc, cw), np.float32)  # the row's rates, center-major
+        ips = np.empty(kc, np.uint64)
+        b_tfa = np.empty((kc, cw), np.float32)
         tr = yy // tile
         for ri in range(runs_at[tr], runs_at[tr + 1]):
             xa = runs[ri, 0]
             xb = runs[ri, 1]
             base, step = row_words(packed, geo, lo, hi, y0 + yy, x0 + xa, x0 + xb, words)
             for x in range(xa, xb):
-                ns = word_times(words, base + step * (x - xa), nw, lo, tv)
-                ip = -1  # last spike <= cc
-                f0 = 0  # first spike >= c_lo
-                f1 = 0  # first spike >= c_hi
+                k = base + step * (x - xa)
+                cnt = 0
+                for q in range(nw + 1):
+                    pre[q] = cnt
+                    cnt += np.int64(popcount(words[k, q]))
+                pre[nw + 1] = cnt
+                ns = cnt
+                ip_a = _rank(words, k, pre, qs[0, 0], ms[0, 0]) - 1
+                ip_b = _rank(words, k, pre, qs[kc - 1, 0], ms[kc - 1, 0]) - 1
+                # spikes read: indices ip - thr - 1 .. ip + thr + 2 of the first and last
+                # centers' ip; extract the words holding them
+                r0 = max(0, ip_a - thr - 1)
+                r1 = min(ns, ip_b + thr + 3)
+                q = 0
+                while q < nw and pre[q + 1] <= r0:
+                    q += 1
+                i = pre[q]
+                while i < r1:
+                    w = words[k, q]
+                    tb = lo + 64 * q
+                    while w:
+                        tv[i] = tb + np.int64(trailing_zeros(w))
+                        i += 1
+                        w &= w - one
+                    q += 1
+                f0_b = _rank(words, k, pre, qs[kc - 1, 1], ms[kc - 1, 1])
+                f1_a = _rank(words, k, pre, qs[0, 2], ms[0, 2])
+                if ip_a - side >= f0_b and ip_b + 1 + side < f1_a:
+                    # every center's interval and TFA span lie inside its range: ISI and
+                    # grow_span's merge without branches, rates from the tables (unsigned
+                    # indices: no negative-index wrap)
+                    for kk in range(kc):
+                        ip = np.uint64(_rank(words, k, pre, q_ip[kk], m_ip[kk]) - 1)
+                        ips[kk] = ip
+                        b_raw[kk, x] = rec[tv[ip + one] - tv[ip]]
+                    if thr > 0:
+                        for kk in range(kc):
+                            cc = centers[kk]
+                            ip = ips[kk]
+                            g = np.uint64(0)
+                            for j in range(1, thr):
+                                uj = np.uint64(j)
+                                g += np.uint64(cc - tv[ip - uj] <= tv[ip + one + uthr - uj] - cc)
+                            b_tfa[kk, x] = rec_t[tv[ip + uthr - g] - tv[ip - g]]
+                    continue
                 for kk in range(kc):
                     cc = centers[kk]
+                    ip = _rank(words, k, pre, qs[kk, 0], ms[kk, 0]) - 1  # last spike <= cc
+                    f0 = _rank(words, k, pre, qs[kk, 1], ms[kk, 1])  # first spike >= c_lo
+                    f1 = _rank(words, k, pre, qs[kk, 2], ms[kk, 2])  # first spike >= c_hi
                     c_lo = max(0, cc - m)
                     c_hi = min(n, cc + m + 1)
-                    while ip + 1 < ns and tv[ip + 1] <= cc:
-                        ip += 1
-                    sk = slot[kk]
-                    raw[sk, yy, x] = np.float32(1.0 / isi_from_times(tv, ns, ip, c_lo, c_hi))
+                    b_raw[kk, x] = np.float32(1.0 / isi_from_times(tv, ns, ip, c_lo, c_hi))
                     if thr <= 0:
                         continue
                     # TFA over thr intervals (the rule of tfa._adaptive_kernel, no refractory)
-                    while f0 < ns and tv[f0] < c_lo:
-                        f0 += 1
-                    while f1 < ns and tv[f1] < c_hi:
-                        f1 += 1
                     if f1 - f0 < 2:
-                        tfa[sk, yy, x] = 1.0 / (c_hi - c_lo + 1)
+                        b_tfa[kk, x] = 1.0 / (c_hi - c_lo + 1)
                         continue
                     a, b = grow_span(tv, f0, f1, ip, cc, thr)
-                    tfa[sk, yy, x] = (b - a) / (tv[b] - tv[a])
+                    b_tfa[kk, x] = (b - a) / (tv[b] - tv[a])
+            # the row's frames, one contiguous copy per center
+            for kk in range(kc):
+                raw[slot[kk], yy, xa:xb] = b_raw[kk, xa:xb]
+                if thr > 0:
+                    tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
 
 
 #: Side (pixels) of the tiles the fine stage skips or works on.
@@ -165,6 +253,8 @@ def pm_frames(
     m = int(p["max_isi"])
     lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
     thr = int(p["pm_guide"])
+    # the crop rows with work
+    rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
     raw = np.ones((cs.size, y1 - y0, x1 - x0), np.float32)
     tfa = np.ones(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     _pm_kernel(
@@ -179,15 +269,18 @@ def pm_frames(
         m,
         thr,
         TILE,
+        rows,
         runs_at,
         runs,
         raw,
         tfa,
     )
-    g = raw.copy() if thr <= 0 else tfa
-    if p["pm_sigma"] > 0:
-        import cv2
+    g = raw if thr <= 0 else tfa
+    if p["pm_sigma"] <= 0:
+        return raw, g.copy() if thr <= 0 else g
+    import cv2
 
-        for k in range(g.shape[0]):
-            g[k] = cv2.GaussianBlur(g[k], (0, 0), float(p["pm_sigma"]))
-    return raw, g
+    out = np.empty_like(g)
+    for k in range(g.shape[0]):
+        cv2.GaussianBlur(g[k], (0, 0), float(p["pm_sigma"]), dst=out[k])
+    return raw, out

@@ -37,7 +37,18 @@ def grow_span(times, f0, f1, ip, c, n_int):  # pragma: no cover - numba
     Starts from the interval containing ``c`` (spike ``ip`` is the last one <= c), or the one
     nearest ``c`` at an open end, and adds the neighbouring interval closer to ``c`` until
     ``n_int`` intervals are covered or ``times[f0:f1]`` runs out.
+
+    Where ``n_int - 1`` spikes lie on each side of that interval within ``times[f0:f1]`` (the
+    usual case), the span is found without branches: growth merges the left distances
+    ``L_j = c - times[ip - j]`` with the right ones ``R_j = times[ip + 1 + j] - c`` (both
+    increasing, ties to the left), and of its first ``n_int - 1`` picks,
+    ``#{j : L_j <= R_(n_int - j)}`` are on the left.
     """
+    if n_int >= 1 and ip - n_int + 1 >= f0 and ip + n_int < f1:
+        k = 0
+        for j in range(1, n_int):
+            k += np.int64(c - times[ip - j] <= times[ip + 1 + n_int - j] - c)
+        return ip - k, ip + n_int - k
     if ip < f0:
         a, b = f0, f0 + 1
     elif ip >= f1 - 1:
