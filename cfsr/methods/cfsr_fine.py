@@ -41,6 +41,7 @@ PatchMatch-region scan (step 5).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Mapping
 from typing import Any
 
@@ -370,6 +371,18 @@ def _fine_mask_crop(m: np.ndarray, close_size: int, min_area: int, dilate: int) 
     return m
 
 
+_SCRATCH = threading.local()
+
+
+def _scratch(shape: tuple[int, ...]) -> np.ndarray:
+    """The history scan's word store, kept per thread between calls: a fresh 13 MB array
+    costs its page faults on every frame (several ms, more than the transposes it saves)."""
+    buf = getattr(_SCRATCH, "words", None)
+    if buf is None or buf.shape != shape:
+        buf = _SCRATCH.words = np.empty(shape, np.uint64)
+    return buf
+
+
 def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
     """The whole-frame scan: the CSR history of MOG, DAISI at t, TFI and TFP at t.
 
@@ -402,7 +415,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
-    store = np.empty((h, w + 80, (hi - lo + 63) >> 6), np.uint64)
+    store = _scratch((h, w + 80, (hi - lo + 63) >> 6))
     bases = np.empty((h, 2), np.int64)
     _static_kernel(
         src.packed,
