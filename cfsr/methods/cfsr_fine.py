@@ -60,7 +60,7 @@ from cfsr._words import (
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
 from cfsr.methods.daisi import daisi_from_times, log_table
-from cfsr.methods.distinction import distinct_in_words
+from cfsr.methods.distinction import distinct_in_words, sliding_distinct
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
@@ -292,34 +292,7 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, 
                     counts[k, y, x] = ub[y, x]
                 continue
             ns = range_times(words, r, lo, u_lo, u_hi, tv)
-            a = 0
-            b = 0
-            distinct = 0
-            for k in range(k_count):
-                e = ends[k]
-                s = e - span + 1
-                # an ISI longer than span never lies inside one window: not counted, so
-                # not removed either; the count itself is branch-free
-                while b < ns and tv[b] <= e:
-                    if b > a:
-                        d = tv[b] - tv[b - 1]
-                        if d <= span:
-                            distinct += hist[d] == 0
-                            hist[d] += 1
-                    b += 1
-                while a < b and tv[a] < s:
-                    if a + 1 < b:
-                        d = tv[a + 1] - tv[a]
-                        if d <= span:
-                            hist[d] -= 1
-                            distinct -= hist[d] == 0
-                    a += 1
-                counts[k, y, x] = distinct
-            while a + 1 < b:
-                d = tv[a + 1] - tv[a]
-                if d <= span:
-                    hist[d] = 0
-                a += 1
+            sliding_distinct(tv, ns, ends, span, hist, counts, y, x)
 
 
 def fine_mask(

@@ -24,18 +24,55 @@ __all__ = [
     "distinct_isi_counts",
     "distinct_isi_counts_packed",
     "distinct_in_words",
+    "sliding_distinct",
     "coarse_masks",
 ]
 
 
+@njit(cache=True, inline="always")
+def sliding_distinct(times, ns, ends, span, hist, out, y, x):  # pragma: no cover - numba
+    """Eq. 5 for one pixel at every step of ``ends`` (ascending): ``out[k, y, x]`` = distinct
+    ISI values whose two spikes lie in ``(ends[k] - span, ends[k]]``.
+
+    One pass over the pixel's spike steps ``times[:ns]``: a sliding window adds the ISI of each
+    spike that enters and removes the ISI of each spike that leaves, with a histogram of ISI
+    values (``hist``, ``span + 1`` bins, empty on entry and on return) and a running count of
+    non-empty bins, so K evaluation steps cost one scan, not K.
+    """
+    a = 0  # first spike inside the window
+    b = 0  # one past the last spike inside the window
+    distinct = 0
+    for k in range(ends.shape[0]):
+        e = ends[k]
+        s = e - span + 1
+        # an ISI longer than span never lies inside one window: not counted, so not removed
+        # either; the count itself is branch-free
+        while b < ns and times[b] <= e:
+            if b > a:
+                d = times[b] - times[b - 1]
+                if d <= span:
+                    distinct += hist[d] == 0
+                    hist[d] += 1
+            b += 1
+        while a < b and times[a] < s:
+            if a + 1 < b:
+                d = times[a + 1] - times[a]
+                if d <= span:
+                    hist[d] -= 1
+                    distinct -= hist[d] == 0
+            a += 1
+        out[k, y, x] = distinct
+    # leave the histogram empty for the next pixel
+    while a + 1 < b:
+        d = times[a + 1] - times[a]
+        if d <= span:
+            hist[d] = 0
+        a += 1
+
+
 @njit(parallel=True, cache=True)
 def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
-    """Distinct ISI values in ``(ends[k] - span, ends[k]]`` per pixel, for sorted ``ends``.
-
-    One pass per pixel over its spike times: a sliding window adds the ISI of each spike that
-    enters and removes the ISI of each spike that leaves, with a histogram of ISI values and a
-    running count of non-empty bins, so K evaluation steps cost one scan, not K.
-    """
+    """:func:`sliding_distinct` for every pixel of unpacked frames, for sorted ``ends``."""
     n, h, w = spikes.shape
     k_count = ends.shape[0]
     lo = max(0, ends[0] - span + 1)
@@ -48,35 +85,7 @@ def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
         hist = np.zeros(span + 1, np.int32)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)
-            a = 0  # first spike inside the window
-            b = 0  # one past the last spike inside the window
-            distinct = 0
-            for k in range(k_count):
-                e = ends[k]
-                s = e - span + 1
-                while b < ns and times[b] <= e:
-                    if b > a:
-                        d = times[b] - times[b - 1]
-                        if d <= span:
-                            hist[d] += 1
-                            if hist[d] == 1:
-                                distinct += 1
-                    b += 1
-                while a < b and times[a] < s:
-                    if a + 1 < b:
-                        d = times[a + 1] - times[a]
-                        if d <= span:
-                            hist[d] -= 1
-                            if hist[d] == 0:
-                                distinct -= 1
-                    a += 1
-                out[k, y, x] = distinct
-            # leave the histogram empty for the next pixel
-            while a + 1 < b:
-                d = times[a + 1] - times[a]
-                if d <= span:
-                    hist[d] = 0
-                a += 1
+            sliding_distinct(times, ns, ends, span, hist, out, y, x)
     return out
 
 
