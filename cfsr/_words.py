@@ -206,10 +206,12 @@ def _window(words, k, lo, q, a, b):  # pragma: no cover - numba
     one = np.uint64(1)
     w = words[k, q]
     base = lo + 64 * q
+    if a - base >= 64 or b <= base:
+        return np.uint64(0)
     if base < a:
-        w = w & ~((one << np.uint64(min(64, a - base))) - one) if a - base < 64 else np.uint64(0)
+        w &= ~((one << np.uint64(a - base)) - one)
     if base + 64 > b:
-        w = w & ((one << np.uint64(b - base)) - one) if b > base else np.uint64(0)
+        w &= (one << np.uint64(b - base)) - one
     return w
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import pytest
 
 from cfsr.methods.patchmatch import nnf_multi, patchmatch_fuse
 
@@ -86,23 +87,29 @@ def test_temporal_schedule_is_thread_independent_and_crop_invariant():
     assert not np.array_equal(plain, one)
 
 
-def test_block_ssd_matches_numpy():
+@pytest.fixture(scope="module")
+def block_ssd():
     from numba import njit
 
-    from cfsr.methods.patchmatch import _box6x8
+    from cfsr.methods.patchmatch import _box6x8_min
 
     @njit
-    def run(ref, tgt, y, x, ty, tx, out):
+    def run(ref, tgt, y, x, ty, tx, cy, cx, bc, boy, box):
         w = ref.shape[1]
-        _box6x8(ref, tgt, y * w + x, ty * w + tx, w, out)
+        _box6x8_min(ref, tgt, y * w + x, ty * w + tx, w, cy, cx, bc, boy, box)
 
     rng = np.random.default_rng(5)
     ref = rng.random((30, 40)).astype(np.float32)
     tgt = rng.random((30, 40)).astype(np.float32)
-    out = np.zeros(8, np.float32)
-    run(ref, tgt, 4, 7, 9, 11, out)
     want = [((ref[4:10, 7 + k : 13 + k] - tgt[9:15, 11 + k : 17 + k]) ** 2).sum() for k in range(8)]
-    np.testing.assert_allclose(out, want, rtol=1e-5)
+    return run, ref, tgt, np.array(want, np.float32)
+
+
+def test_block_ssd_matches_numpy(block_ssd):
+    run, ref, tgt, want = block_ssd
+    bc = np.full(8, np.inf, np.float32)  # every lane takes the new SSD
+    run(ref, tgt, 4, 7, 9, 11, 0, 0, bc, np.zeros(8, np.int32), np.zeros(8, np.int32))
+    np.testing.assert_allclose(bc, want, rtol=1e-5)
 
 
 def test_temporal_schedule_other_patch_sizes():
@@ -120,26 +127,13 @@ def test_temporal_schedule_other_patch_sizes():
             assert hit.mean() > 0.99, (patch, s, hit.mean())
 
 
-def test_block_ssd_min_keeps_the_lane_bests():
-    from numba import njit
-
-    from cfsr.methods.patchmatch import _box6x8, _box6x8_min
-
-    @njit
-    def run(ref, tgt, y, x, ty, tx, cy, cx, bc, boy, box, out):
-        w = ref.shape[1]
-        _box6x8(ref, tgt, y * w + x, ty * w + tx, w, out)
-        _box6x8_min(ref, tgt, y * w + x, ty * w + tx, w, cy, cx, bc, boy, box)
-
-    rng = np.random.default_rng(6)
-    ref = rng.random((30, 40)).astype(np.float32)
-    tgt = rng.random((30, 40)).astype(np.float32)
-    out = np.zeros(8, np.float32)
+def test_block_ssd_min_keeps_the_lane_bests(block_ssd):
+    run, ref, tgt, want = block_ssd
     bc = np.full(8, np.inf, np.float32)
     bc[::2] = 0.0  # lanes already better than any SSD keep their offsets
     boy = np.full(8, -7, np.int32)
     box = np.full(8, 9, np.int32)
-    run(ref, tgt, 4, 7, 9, 11, 5, 4, bc, boy, box, out)
-    np.testing.assert_array_equal(bc, np.where(np.arange(8) % 2 == 0, 0.0, out))
+    run(ref, tgt, 4, 7, 9, 11, 5, 4, bc, boy, box)
+    np.testing.assert_allclose(bc, np.where(np.arange(8) % 2 == 0, 0.0, want), rtol=1e-5)
     np.testing.assert_array_equal(boy, np.where(np.arange(8) % 2 == 0, -7, 5))
     np.testing.assert_array_equal(box, np.where(np.arange(8) % 2 == 0, 9, 4))

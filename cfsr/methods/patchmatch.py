@@ -72,6 +72,8 @@ from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
+from cfsr._splitmix import GOLDEN, mix64
+
 _X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
 
 __all__ = ["nnf_multi", "fuse_matches", "patchmatch_fuse"]
@@ -79,25 +81,13 @@ __all__ = ["nnf_multi", "fuse_matches", "patchmatch_fuse"]
 # right-hand padding columns beyond the patch's for the block search (16-column reads)
 _EXTRA = 10
 
-_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
-_MIX2 = np.uint64(0x94D049BB133111EB)
-_GOLD = np.uint64(0x9E3779B97F4A7C15)
-
-
-@njit(cache=True, inline="always")
-def _mix(z):  # pragma: no cover - numba
-    """splitmix64 finaliser: a well-spread 64-bit hash of ``z`` (uint64)."""
-    z = (z ^ (z >> np.uint64(30))) * _MIX1
-    z = (z ^ (z >> np.uint64(27))) * _MIX2
-    return z ^ (z >> np.uint64(31))
-
 
 @njit(cache=True, inline="always")
 def _rand2(seed, a, b, c, r):  # pragma: no cover - numba
     """Two uniform integers in [-r, r] from the counter (seed, a, b, c)."""
-    z = _mix(seed + _GOLD * np.uint64(a + 1))
-    z = _mix(z + _GOLD * np.uint64(b + 1))
-    z = _mix(z + _GOLD * np.uint64(c + 1))
+    z = mix64(seed + GOLDEN * np.uint64(a + 1))
+    z = mix64(z + GOLDEN * np.uint64(b + 1))
+    z = mix64(z + GOLDEN * np.uint64(c + 1))
     span = np.uint64(2 * r + 1)
     dy = np.int64(z % span) - r
     dx = np.int64((z >> np.uint64(32)) % span) - r
@@ -237,7 +227,13 @@ def _nnf_kernel(ref, targets, ys, xs, keys, index, patch, iters, max_r, seed, of
 
 
 def _box6x8_sums(context, builder, rty, tty, ra, ta, rb_, tb_, st_):
-    """IR of :func:`_box6x8`: the eight 6 x 6 SSDs as one ``<8 x float>`` value."""
+    """IR of the SSDs of eight horizontally adjacent 6 x 6 patches, one ``<8 x float>`` value
+    (AVX-width vectors, no early exit).
+
+    The patches start at flat positions ``rb + k`` and ``tb + k`` (k = 0..7) of the
+    C-contiguous float32 ``ref``/``tgt`` with row length ``stride``, reading 16 columns per
+    row: squared differences summed over the 6 rows per column, then 6-column box sums.
+    """
     i64 = ir.IntType(64)
     rp = context.make_array(rty)(context, builder, ra).data
     tp = context.make_array(tty)(context, builder, ta).data
@@ -265,33 +261,9 @@ def _box6x8_sums(context, builder, rty, tty, ra, ta, rb_, tb_, st_):
 
 
 @intrinsic
-def _box6x8(typingctx, ref, tgt, rb, tb, stride, out):
-    """SSD of eight horizontally adjacent 6 x 6 patches (AVX-width vectors, no early exit).
-
-    ``ref``/``tgt`` are C-contiguous float32 2-D arrays with row length ``stride``; the patches
-    start at flat positions ``rb + k`` and ``tb + k`` (k = 0..7), reading 16 columns per row.
-    ``out[k]`` = sum over the 6 rows and 6 columns of the squared differences: each row's
-    squared differences summed over the rows per column first, then the 6-column box sums.
-    """
-    sig = types.void(ref, tgt, types.int64, types.int64, types.int64, out)
-
-    def codegen(context, builder, signature, args):
-        ra, ta, rb_, tb_, st_, oa = args
-        rty, tty, rbt, tbt, stt, oty = signature.args
-        rb_ = context.cast(builder, rb_, rbt, types.int64)
-        tb_ = context.cast(builder, tb_, tbt, types.int64)
-        st_ = context.cast(builder, st_, stt, types.int64)
-        s = _box6x8_sums(context, builder, rty, tty, ra, ta, rb_, tb_, st_)
-        op = context.make_array(oty)(context, builder, oa).data
-        builder.store(s, builder.bitcast(op, s.type.as_pointer()), align=4)
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
-@intrinsic
 def _box6x8_min(typingctx, ref, tgt, rb, tb, stride, cy, cx, bc, boy, box):
-    """:func:`_box6x8` folded into the eight lanes' running bests, without branches.
+    """The eight SSDs of :func:`_box6x8_sums` folded into the lanes' running bests, without
+    branches.
 
     ``bc`` (float32), ``boy`` and ``box`` (int32) hold 8 lanes each: where the new SSD is
     below ``bc`` (strictly, as ``c < best``), ``bc`` takes it and ``boy``/``box`` take

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr._splitmix import GOLDEN, mix64
 from cfsr.layout import STEP_RATE_HZ, Layout
 from cfsr.simulate.scenes import Scene, make_scene
 
@@ -162,24 +163,11 @@ NOISE_PRESETS: dict[str, Noise] = {
 # --------------------------------------------------------------------------- kernel
 
 
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
-_MIX2 = np.uint64(0x94D049BB133111EB)
-
-
-@njit(cache=True, inline="always")
-def _mix64(z):  # pragma: no cover - numba
-    """splitmix64 finaliser: a well-mixed 64-bit hash of ``z``."""
-    z = (z ^ (z >> np.uint64(30))) * _MIX1
-    z = (z ^ (z >> np.uint64(27))) * _MIX2
-    return z ^ (z >> np.uint64(31))
-
-
 @njit(cache=True, inline="always")
 def _uniform(state):  # pragma: no cover - numba
     """Next (u in (0, 1], state) of a splitmix64 stream."""
-    state = state + _GOLDEN
-    u = ((_mix64(state) >> np.uint64(11)) + np.uint64(1)) * (1.0 / 9007199254740992.0)
+    state = state + GOLDEN
+    u = ((mix64(state) >> np.uint64(11)) + np.uint64(1)) * (1.0 / 9007199254740992.0)
     return u, state
 
 
@@ -263,8 +251,8 @@ def _integrate(bg, dyn, oy, ox, gain, dark, thr, pot, out, epc, seed, t0):  # pr
         for t in range(n):
             oyt = out[t, y]
             if epc > 0.0:
-                key = np.uint64(t0 + t) * _GOLDEN + np.uint64(y)
-                st = _mix64(seed ^ _mix64(key))
+                key = np.uint64(t0 + t) * GOLDEN + np.uint64(y)
+                st = mix64(seed ^ mix64(key))
                 if in_roi:
                     st = _fire_shot(bgy, 0, gy, dy, ty, py, oyt, 0, ox, epc, st)
                     st = _fire_shot(dyn[t, iy], ox, gy, dy, ty, py, oyt, ox, ox + rw, epc, st)
