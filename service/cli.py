@@ -53,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "_missing", False):
         parser.error(f"command {args.command!r} is not available in this build")
     mod = importlib.import_module(args._module)
+    from cfsr._heap import keep_freed_memory
+
+    keep_freed_memory()  # long runs reuse freed frame arrays instead of faulting pages in
     try:
         return int(mod.run(args) or 0)
     except KeyboardInterrupt:

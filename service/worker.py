@@ -220,8 +220,11 @@ def worker_main(
     """Entry point of the worker process (spawned by :class:`WorkerSupervisor`)."""
     import signal
 
+    from cfsr._heap import keep_freed_memory
+
     # Ctrl+C reaches the whole process group: the supervisor stops us, not the signal.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    keep_freed_memory()  # frames reuse the last frame's large arrays (no page faults)
     try:
         w = _Worker(slot_path, config, evt_q)
         w.attach(ring_path, layout)

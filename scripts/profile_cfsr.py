@@ -1,0 +1,77 @@
+"""Where one CFSR frame's time goes: stage timings on a simulated scene (400 x 250).
+
+Usage: ``python scripts/profile_cfsr.py [scene] [--no-keep-heap]`` (scene: disk, fan, car,
+static, lowlight; default disk). Times the newest computable step of a 4096-step recording
+through the streaming reconstructor, as ``cfsr bench --throughput`` does, after warm-up calls,
+and prints the mean milliseconds of each pipeline stage over 20 frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import importlib
+import time
+
+from cfsr._bits import pack_frames
+from cfsr._heap import keep_freed_memory
+from cfsr.layout import Layout
+from cfsr.simulate import simulate
+from cfsr.streaming import StreamingReconstructor
+
+STAGES = (
+    "_history",
+    "_static_kernel",
+    "_dynamic_kernel",
+    "atsr_fuse",
+    "_mog_objects",
+    "fine_mask",
+    "pm_frames",
+    "patchmatch_fuse",
+)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", nargs="?", default="disk")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument(
+        "--no-keep-heap", action="store_true", help="leave glibc's malloc settings as they are"
+    )
+    args = ap.parse_args()
+    if not args.no_keep_heap:
+        keep_freed_memory()
+    cf = importlib.import_module("cfsr.methods.cfsr_fine")
+    spent: dict[str, float] = collections.defaultdict(float)
+
+    def timed(name, fn):
+        def run(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[name] += time.perf_counter() - t0
+
+        return run
+
+    for name in STAGES:
+        setattr(cf, name, timed(name, getattr(cf, name)))
+    sim = simulate(args.scene, 4096, seed=0, height=250, width=400)
+    sr = StreamingReconstructor("cfsr", Layout(400, 250), slack=4096)
+    sr.push(pack_frames(sim.spikes), 0)
+    t = sr.latest_step()
+    for _ in range(3):
+        sr.compute(t)
+    spent.clear()
+    t0 = time.perf_counter()
+    for _ in range(args.frames):
+        sr.compute(t)
+    total = (time.perf_counter() - t0) / args.frames
+    print(f"{args.scene}: {total * 1e3:.1f} ms per frame ({1 / total:.1f} fps)")
+    for name in STAGES:
+        if name in spent:
+            print(f"  {name:18s} {spent[name] / args.frames * 1e3:7.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
