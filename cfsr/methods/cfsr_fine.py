@@ -25,7 +25,7 @@ the calibration of every default are in docs/methods.md):
 
 "Skip what the scene does not need" (``adaptive``, default True): the history scan proves most
 pixels static in one walk of their spikes, and runs its second pass (TFI at every history step,
-exact counts) only when some pixel is not proven static; an empty fine mask skips the TFI frames
+coarse masks) only when some pixel is not proven static; an empty fine mask skips the TFI frames
 and PatchMatch entirely (the output is then the plain TFP); MOG runs only where the 8-bit
 history varies by phi0 or more; tiles without a fine-mask pixel within the search margin get no
 TFI frames and no guides, and PatchMatch works only on the fine mask's pixels.
@@ -60,7 +60,7 @@ from cfsr._words import (
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
 from cfsr.methods.daisi import daisi_from_times, log_table
-from cfsr.methods.distinction import distinct_in_words, sliding_distinct
+from cfsr.methods.distinction import distinct_in_words
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
@@ -145,7 +145,7 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
 #   walk of their spikes), the TFP counts of the history and at t, DAISI at t -- all that a
 #   static window needs;
 # * :func:`_dynamic_kernel` (whole frame, only when some pixel is not proven static): TFI at
-#   the K history steps and the exact distinct-ISI counts of the unproven pixels;
+#   the K history steps and the coarse masks of the unproven pixels;
 # * :mod:`cfsr.methods.pmframes` (only the tiles PatchMatch can read): TFI and TFA at the
 #   PatchMatch steps.
 
@@ -260,21 +260,19 @@ def _static_kernel(
 def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, store, bases):
     # pragma: no cover - numba
     """Second pass, run only when some pixel was not proven static: the TFI interval at
-    every history step (the ATSR scale of Eq. 7 needs it on the static region too) and the
-    exact distinct-ISI counts (sliding histogram, distinction.py) where ``ub >= theta``;
-    elsewhere ``counts`` is ``ub``, below ``theta`` like every window's own count.
-    Reads the first pass's words (``store``, ``bases``, steps from ``lo``) when it holds one
-    row per image row; otherwise gathers them."""
+    every history step (the ATSR scale of Eq. 7 needs it on the static region too) and,
+    where ``ub >= theta``, each history window's distinct-ISI count (Eq. 5) by a walk that
+    stops at ``theta`` (only ``count >= theta``, the coarse mask, is used: a moving pixel
+    reaches it within a few words); elsewhere ``counts`` is ``ub``, below ``theta`` like
+    every window's own count. Reads the first pass's words (``store``, ``bases``, steps from
+    ``lo``) when it holds one row per image row; otherwise gathers them."""
     n = packed.shape[0]
     h, w = ub.shape
     k_count = ends.shape[0]
     nw = (hi - lo + 63) >> 6
-    u_lo = max(0, ends[0] - span + 1)
-    u_hi = ends[k_count - 1] + 1
     stored = store.shape[0] == h
     for y in prange(h):
-        tv = np.empty(hi - lo + 1, np.int64)
-        hist = np.zeros(span + 1, np.int32)
+        big = np.empty((hi - lo) // 64 + 1, np.int64)
         if stored:
             words = store[y]
             base = bases[y, 0]
@@ -291,8 +289,11 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, 
                 for k in range(k_count):
                     counts[k, y, x] = ub[y, x]
                 continue
-            ns = range_times(words, r, lo, u_lo, u_hi, tv)
-            sliding_distinct(tv, ns, ends, span, hist, counts, y, x)
+            for k in range(k_count):
+                e = ends[k]
+                counts[k, y, x] = distinct_in_words(
+                    words, r, nw, lo, max(0, e - span + 1), e + 1, span, big, theta
+                )
 
 
 def fine_mask(
@@ -362,7 +363,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     The same numbers as ``csr_frames`` (history frames' static TFP over ``mog_window`` steps),
     ``daisi_strength``, ``tfi_rate`` and ``tfp_rate`` on the window. A first pass proves the
     static pixels static and gathers what a static window needs; the second (TFI at every
-    history step, exact counts) runs only when some pixel is not proven static.
+    history step, coarse masks) runs only when some pixel is not proven static.
     """
     n, h, w = src.n, src.h, src.w
     ks = range(p["mog_frames"] - 1, -1, -1)
