@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import cfsr
-from cfsr.methods.atsr import atsr_alpha, atsr_fuse
+from cfsr.methods.atsr import atsr_alpha, atsr_fuse, atsr_fuse_isi
 from cfsr.methods.cfsr_fine import fine_mask
 from cfsr.methods.daisi import daisi_edges, daisi_strength
 from cfsr.methods.distinction import coarse_masks, distinct_isi_counts
@@ -115,6 +115,25 @@ def test_atsr_scale_and_guards():
     bad[1, 1] = np.nan
     out, alpha = atsr_fuse(bad, tfp, mask)
     assert alpha == 1.0 and np.isfinite(out).all() and out.max() <= 1.0
+
+
+def test_atsr_of_a_stack_from_intervals_equals_atsr_fuse_frame_by_frame():
+    rng = np.random.default_rng(7)
+    k, h, w = 6, 9, 11
+    isi = rng.integers(1, 300, (k, h, w)).astype(np.int32)
+    isi[1] = 1  # every TFI 1: the clip at 1 spike/step
+    tfp = rng.random((k, h, w)).astype(np.float32) * 0.8
+    tfp[2] = 0.0  # dark static region: scale 1
+    mask = rng.random((k, h, w)) < 0.3
+    mask[3] = False  # no dynamic pixel: the TFP itself
+    mask[4] = True  # no static pixel: scale 1
+    got = atsr_fuse_isi(isi, tfp, mask)
+    for j in range(k):
+        if mask[j].any():
+            want = atsr_fuse((1.0 / isi[j]).astype(np.float32), tfp[j], mask[j])[0]
+        else:
+            want = np.clip(tfp[j], 0.0, 1.0)
+        np.testing.assert_array_equal(got[j], want)
 
 
 # --------------------------------------------------------------------------- MOG

@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["atsr_alpha", "atsr_fuse"]
+__all__ = ["atsr_alpha", "atsr_fuse", "atsr_fuse_isi"]
 
 
 @njit(cache=True)
@@ -109,3 +109,67 @@ def atsr_fuse(
         out.reshape(-1),
     )
     return out, alpha
+
+
+@njit(parallel=True, cache=True)
+def _fuse_isi_kernel(isi, tfp, mask, alpha_max, out):  # pragma: no cover - numba
+    """:func:`atsr_fuse` of each frame ``j`` (flat rows), the dynamic rate being TFI
+    ``float32(1 / isi)``; the same sums (float64, pixel order), scale and paste."""
+    for j in prange(isi.shape[0]):
+        n = isi.shape[1]
+        dynamic = False
+        static = False
+        num = 0.0
+        den = 0.0
+        for i in range(n):
+            if mask[j, i]:
+                dynamic = True
+            else:
+                static = True
+                num += np.float32(1.0 / isi[j, i])
+                den += tfp[j, i]
+        if not dynamic:  # no dynamic pixel: the TFP itself (as csr_frames)
+            for i in range(n):
+                out[j, i] = min(max(tfp[j, i], 0.0), 1.0)
+            continue
+        alpha = 1.0
+        if static and np.isfinite(num) and np.isfinite(den) and num > 0.0 and den > 0.0:
+            alpha = min(max(num / den, 1.0 / alpha_max), alpha_max)
+        a32 = np.float32(alpha)
+        for i in range(n):
+            v = np.float32(1.0 / isi[j, i]) if mask[j, i] else a32 * tfp[j, i]
+            out[j, i] = 0.0 if np.isnan(v) else min(max(v, 0.0), 1.0)
+    return out
+
+
+def atsr_fuse_isi(
+    isi: np.ndarray, tfp: np.ndarray, mask: np.ndarray, *, alpha_max: float = 4.0
+) -> np.ndarray:
+    """CSR frames from TFI intervals: :func:`atsr_fuse` with ``dynamic = tfi = 1 / isi`` for
+    every frame of a stack, frames without a dynamic pixel giving their clipped TFP.
+
+    Parameters
+    ----------
+    isi : ndarray (K, H, W) int
+        TFI intervals (steps, >= 1, Eq. 3).
+    tfp : ndarray (K, H, W) float32
+        TFP rates (spikes/step, Eq. 4).
+    mask : ndarray (K, H, W) bool
+        Dynamic regions.
+
+    Returns
+    -------
+    rates : ndarray (K, H, W) float32
+        In [0, 1] spikes per step; the numbers of ``atsr_fuse`` frame by frame (one pass per
+        frame, frames in parallel).
+    """
+    k = isi.shape[0]
+    out = np.empty(isi.shape, np.float32)
+    _fuse_isi_kernel(
+        np.ascontiguousarray(isi).reshape(k, -1),
+        np.ascontiguousarray(tfp, dtype=np.float32).reshape(k, -1),
+        np.ascontiguousarray(mask, dtype=bool).reshape(k, -1),
+        float(alpha_max),
+        out.reshape(k, -1),
+    )
+    return out

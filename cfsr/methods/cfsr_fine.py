@@ -57,7 +57,7 @@ from cfsr._words import (
     range_times,
     row_words,
 )
-from cfsr.methods.atsr import atsr_fuse
+from cfsr.methods.atsr import atsr_fuse, atsr_fuse_isi
 from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
 from cfsr.methods.daisi import daisi_from_times, log_table
 from cfsr.methods.distinction import distinct_in_words
@@ -429,12 +429,8 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
         src.packed, src.geo, lo, hi, ends, span, theta, m, ub, counts, isi, store, bases
     )
     masks = counts >= theta
-    rates = np.empty((k, h, w), np.float32)
-    for j in range(k):
-        if masks[j].any():  # TFI only where a frame has dynamic pixels (as csr_frames)
-            rates[j] = atsr_fuse((1.0 / isi[j]).astype(np.float32), tfps[j], masks[j])[0]
-        else:
-            rates[j] = np.clip(tfps[j], 0.0, 1.0)
+    # TFI where a frame has dynamic pixels, its clipped TFP elsewhere (as csr_frames)
+    rates = atsr_fuse_isi(isi, tfps[:k], masks)
     tfi = (1.0 / isi[-1]).astype(np.float32)
     return {"rates": rates, "coarse": masks[-1], "tfi": lambda: tfi, "tfp": tfp, "daisi": daisi}
 

@@ -10,11 +10,14 @@ pixel (:func:`pm_tiles`): tiles PatchMatch cannot read are skipped.
 
 from __future__ import annotations
 
+import os
+import threading
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from cfsr._words import PackedWindow, popcount, row_words, trailing_zeros
 from cfsr.methods.tfa import grow_span
@@ -281,6 +284,32 @@ def pm_frames(
     import cv2
 
     out = np.empty_like(g)
-    for k in range(g.shape[0]):
-        cv2.GaussianBlur(g[k], (0, 0), float(p["pm_sigma"]), dst=out[k])
+    sigma = float(p["pm_sigma"])
+
+    def blur(ks: range) -> None:
+        for k in ks:
+            cv2.GaussianBlur(g[k], (0, 0), sigma, dst=out[k])
+
+    # OpenCV blurs an image this small on one core: the frames are split over threads instead
+    # (it releases the GIL; as many as numba's, so NUMBA_NUM_THREADS limits both), same numbers
+    parts = max(1, min(get_num_threads(), g.shape[0]))
+    jobs = [_blur_pool().submit(blur, range(i, g.shape[0], parts)) for i in range(1, parts)]
+    blur(range(0, g.shape[0], parts))
+    for j in jobs:
+        j.result()
     return raw, out
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _blur_pool() -> ThreadPoolExecutor:
+    """Helper threads for the guides' Gaussian blur (created on first use)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(
+                max_workers=max(1, (os.cpu_count() or 1) - 1), thread_name_prefix="cfsr-blur"
+            )
+        return _POOL
