@@ -313,3 +313,14 @@ def _blur_pool() -> ThreadPoolExecutor:
                 max_workers=max(1, (os.cpu_count() or 1) - 1), thread_name_prefix="cfsr-blur"
             )
         return _POOL
+
+
+def _forget_pool() -> None:
+    # a forked child inherits the pool object but not its threads: jobs would never run
+    global _POOL, _POOL_LOCK
+    _POOL = None
+    _POOL_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
