@@ -33,6 +33,7 @@ __all__ = [
     "trailing_zeros",
     "transpose64",
     "row_words",
+    "word_spikes",
     "word_times",
     "prefix_counts",
     "count_range",
@@ -186,17 +187,23 @@ def row_words(packed, geo, lo, hi, y, x0, x1, words):  # pragma: no cover - numb
 
 
 @njit(cache=True, inline="always")
+def word_spikes(w, base, times, i):  # pragma: no cover - numba
+    """Steps of the set bits of word ``w`` (bit ``b`` = step ``base + b``) into
+    ``times[i:]``, ascending; returns the index after the last one written."""
+    one = np.uint64(1)
+    while w:
+        times[i] = base + np.int64(trailing_zeros(w))
+        i += 1
+        w &= w - one
+    return i
+
+
+@njit(cache=True, inline="always")
 def word_times(words, k, nw, lo, times):  # pragma: no cover - numba
     """Spike steps of word row ``k`` into ``times`` (ascending); returns how many."""
     ns = 0
-    one = np.uint64(1)
     for q in range(nw):
-        w = words[k, q]
-        base = lo + 64 * q
-        while w:
-            times[ns] = base + np.int64(trailing_zeros(w))
-            ns += 1
-            w &= w - one
+        ns = word_spikes(words[k, q], lo + 64 * q, times, ns)
     return ns
 
 
@@ -287,12 +294,6 @@ def range_times(words, k, lo, a, b, times):  # pragma: no cover - numba
     ns = 0
     if b <= a:
         return ns
-    one = np.uint64(1)
     for q in range((a - lo) >> 6, ((b - 1 - lo) >> 6) + 1):
-        w = _window(words, k, lo, q, a, b)
-        base = lo + 64 * q
-        while w:
-            times[ns] = base + np.int64(trailing_zeros(w))
-            ns += 1
-            w &= w - one
+        ns = word_spikes(_window(words, k, lo, q, a, b), lo + 64 * q, times, ns)
     return ns

@@ -1,8 +1,8 @@
 """CFSR's "skip what the scene does not need" (``adaptive``) and its fused per-pixel scans.
 
-* The fused scans of :mod:`cfsr.methods.cfsr_fine` give exactly the numbers of the stand-alone
-  kernels they replace (coarse distinction, TFI, TFP, DAISI, TFA), on random windows with
-  clipped ranges.
+* The fused history scan of :mod:`cfsr.methods.cfsr_fine` gives exactly the numbers of the
+  stand-alone kernels it replaces (coarse distinction, TFI, TFP, DAISI), on random windows with
+  clipped ranges (the PatchMatch frames' TFI and TFA: tests/test_pmframes.py).
 * MOG run only where the history varies by phi0 or more finds the same objects.
 * A window without a fine-dynamic pixel gives the TFP path's rate, adaptive or not.
 * The adaptive pipeline stays within 0.1 dB of the always-full one on a moving scene.
@@ -20,8 +20,7 @@ from cfsr.methods.csr import csr_frames
 from cfsr.methods.daisi import daisi_strength
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import get_method, resolve_params
-from cfsr.methods.tfa import adaptive_rates
-from cfsr.methods.tfi import tfi_rate, tfi_rates
+from cfsr.methods.tfi import tfi_rate
 from cfsr.methods.tfp import tfp_rate
 
 
@@ -63,30 +62,6 @@ def test_history_scan_equals_stand_alone_kernels(trial):
     np.testing.assert_array_equal(got["tfp"], want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
     np.testing.assert_array_equal(got["daisi"], want_d)
-
-
-@pytest.mark.parametrize("trial", range(6))
-def test_patchmatch_frames_equal_tfi_and_tfa(trial):
-    rng = np.random.default_rng(100 + trial)
-    n = int(rng.integers(40, 500))
-    s = _random_window(rng, n, 14, 170)
-    p = _params(max_isi=int(rng.integers(1, 150)), pm_guide=(0, 1, 3, 8)[trial % 4])
-    cs = sorted({int(x) for x in rng.integers(0, n, int(rng.integers(1, 12)))})
-    rng.shuffle(cs)
-    box = (2, 11, 3, 15) if trial % 2 else (1, 13, 5, 160)  # narrow, or across chunks
-    raw, guide = pm_frames(PackedWindow.from_frames(s), cs, box, p)
-    crop = np.ascontiguousarray(s[:, box[0] : box[1], box[2] : box[3]])
-    want = tfi_rates(crop, cs, max_isi=p["max_isi"])
-    np.testing.assert_array_equal(raw, want)
-    if p["pm_guide"] > 0:
-        g = adaptive_rates(crop, cs, threshold=p["pm_guide"], max_window=p["max_isi"])
-    else:
-        g = want.copy()
-    import cv2
-
-    for k in range(g.shape[0]):
-        g[k] = cv2.GaussianBlur(g[k], (0, 0), float(p["pm_sigma"]))
-    np.testing.assert_array_equal(guide, g)
 
 
 def test_mog_only_where_the_history_varies_finds_the_same_objects():

@@ -67,9 +67,29 @@ def _check(s, cs, box, p, tiles=None):
     if p["pm_guide"] > 0:
         g = adaptive_rates(crop, cs, threshold=p["pm_guide"], max_window=p["max_isi"])
     else:
-        g = want
+        g = want.copy()
+    if p["pm_sigma"] > 0:
+        import cv2
+
+        for k in range(g.shape[0]):
+            g[k] = cv2.GaussianBlur(g[k], (0, 0), float(p["pm_sigma"]))
     np.testing.assert_array_equal(guide, g)
     return raw, guide
+
+
+@pytest.mark.parametrize("trial", range(6))
+def test_pm_frames_equal_tfi_and_tfa_then_the_gaussian_guide(trial):
+    """With the default Gaussian (sigma 1) on the guides, centers in any order, a narrow box
+    or one across numba's row chunks."""
+    rng = np.random.default_rng(100 + trial)
+    n = int(rng.integers(40, 500))
+    rate = rng.uniform(0.01, 0.95, (1, 14, 170))
+    s = (rng.random((n, 14, 170)) < rate).astype(np.uint8)
+    p = _params(max_isi=int(rng.integers(1, 150)), pm_guide=(0, 1, 3, 8)[trial % 4], pm_sigma=1.0)
+    cs = sorted({int(x) for x in rng.integers(0, n, int(rng.integers(1, 12)))})
+    rng.shuffle(cs)
+    box = (2, 11, 3, 15) if trial % 2 else (1, 13, 5, 160)
+    _check(s, cs, box, p)
 
 
 @pytest.mark.parametrize("trial", range(12))

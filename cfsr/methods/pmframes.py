@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from cfsr._words import PackedWindow, popcount, row_words, trailing_zeros
+from cfsr._words import PackedWindow, popcount, row_words, word_spikes
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
@@ -130,12 +130,7 @@ def _pm_kernel(
                     q += 1
                 i = pre[q]
                 while i < r1:
-                    w = words[k, q]
-                    tb = lo + 64 * q
-                    while w:
-                        tv[i] = tb + np.int64(trailing_zeros(w))
-                        i += 1
-                        w &= w - one
+                    i = word_spikes(words[k, q], lo + 64 * q, tv, i)
                     q += 1
                 f0_b = _rank(words, k, pre, qs[kc - 1, 1], ms[kc - 1, 1])
                 f1_a = _rank(words, k, pre, qs[0, 2], ms[0, 2])
