@@ -76,3 +76,23 @@ def test_bench_on_a_local_dask_cluster_gives_the_same_scores(tmp_path):
         return {(r["method"], r["scene"]): (r["psnr_all"], r["ssim"]) for r in rows}
 
     assert scores("one") == scores("many")
+
+
+@pytest.mark.slow
+def test_bench_quick_sweep(tmp_path, capsys):
+    assert main(["bench", "--sweep", "--quick", "-q", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "sweep.json").read_text())
+    by: dict[str, list] = {}
+    for r in res["rows"]:
+        by.setdefault(r["scenario"], []).append(r)
+    assert list(by) == ["static", "~10% moving", "~30% moving", "full motion"]
+    for scene, rs in by.items():
+        assert len(rs) == 4, scene  # tfp, adaptive, adaptive with the gate off, always-full
+        for r in rs:
+            assert r["ms_per_frame"] > 0 and math.isfinite(r["psnr_all"])
+            if r["method"] == "cfsr":
+                # the bar: the adaptive pipeline's error within 0.1 dB of the full one
+                assert abs(r["psnr_delta_vs_full"]) <= 0.1, (scene, r)
+    static = [r for r in by["static"] if r["method"] == "cfsr"]
+    assert all(r["psnr_delta_vs_full"] == 0.0 and r["fine_fraction"] == 0.0 for r in static)
+    assert "worst frame" in capsys.readouterr().out

@@ -23,7 +23,9 @@ the calibration of every default are in docs/methods.md):
 6. **ATSR** (:mod:`cfsr.methods.atsr`, Eq. 7): the refined dynamic region is fused with the
    static TFP (``tfp_window``) scaled by mean TFI / mean TFP over the static region.
 
-"Skip what the scene does not need" (``adaptive``, default True): the history scan proves most
+"Skip what the scene does not need" (``adaptive``, default True): a window whose spike counts did
+not change over the last two ``static_window`` spans (:mod:`cfsr.methods.staticgate`) is output
+as the TFP at once, with empty masks; otherwise the history scan proves most
 pixels static in one walk of their spikes, and runs its second pass (TFI at every history step,
 coarse masks) only when some pixel is not proven static; an empty fine mask skips the TFI frames
 and PatchMatch entirely (the output is then the plain TFP); MOG runs only where the 8-bit
@@ -65,6 +67,7 @@ from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.staticgate import span_counts, static_gate
 from cfsr.methods.tfp import tfp_span
 
 __all__ = ["fine_mask", "fine_stage", "cfsr_window"]
@@ -101,6 +104,14 @@ FINE_PARAMS: dict[str, Param] = {
         "",
         "skip what the scene does not need (False: every stage on the whole frame)",
     ),
+    "static_tol": Param(
+        1,
+        "spikes",
+        "adaptive: a window whose counts over two static_window spans differ by at most this "
+        "at every pixel is output as TFP at once (-1: gate off)",
+        minimum=-1,
+    ),
+    "static_window": Param(160, "steps", "length of each span the static gate compares", minimum=1),
 }
 
 FINE_PRESETS: dict[str, dict[str, Any]] = {
@@ -463,7 +474,8 @@ def fine_stage(
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The whole CFSR pipeline on one window; returns ``(rate, {"coarse", "fine"})``.
 
-    ``p["adaptive"]`` (default True) skips what the scene does not need: no fine-mask pixel ->
+    ``p["adaptive"]`` (default True) skips what the scene does not need: counts unchanged
+    over the last two ``static_window`` spans (the static gate) or no fine-mask pixel ->
     the plain TFP; otherwise TFI frames and guides only on the tiles within the search margin
     of a fine-mask pixel (:func:`pm_tiles`) and PatchMatch only on the fine-mask pixels.
     ``adaptive=False`` is the always-full pipeline: MOG on the whole frame, TFI frames, guides
@@ -474,6 +486,14 @@ def fine_stage(
     src = window if isinstance(window, PackedWindow) else PackedWindow.from_frames(window)
     n, h, w = src.n, src.h, src.w
     adaptive = bool(p.get("adaptive", True))
+    # 0. static gate: counts unchanged over the last two spans -> the TFP, nothing else to do
+    pa, pb = tfp_span(center, n, p["tfp_window"], p["tfp_mode"])
+    gate = static_gate(src, pb, p["static_window"], p["static_tol"]) if adaptive else None
+    if gate is not None:
+        counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
+        tfp = counts / np.float32(max(1, pb - pa))
+        none = np.zeros((h, w), bool)
+        return np.clip(tfp, 0.0, 1.0).astype(np.float32), {"coarse": none, "fine": none.copy()}
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
     hs = _history(src, center, p)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]

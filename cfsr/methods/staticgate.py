@@ -1,0 +1,69 @@
+"""The static gate: a window whose spike counts did not change is output as TFP at once.
+
+CFSR's coarse stage proves a pixel static by its distinct ISIs (Eq. 5) over the union of the
+K history frames' distinction windows (~650 steps at the defaults), which reads ~5 times the
+steps a TFP frame reads. When a whole window is static that proof, MOG and DAISI only confirm
+what the counts already say, and CFSR's output is the TFP (Eq. 4). The gate reads two spans of
+``window`` steps ending where the TFP span ends and passes when no pixel's count differs
+between them by more than ``tol`` spikes: with constant brightness an integrate-and-fire pixel
+fires ``floor`` or ``ceil`` of ``rate * window`` times in any span of ``window`` steps, so a
+static scene passes at ``tol = 1``, while anything that moves changes the counts of the pixels
+it crosses. What a passing window can still hide is a rate change under ``(tol + 1) / window``
+spikes per step (1.25 % of full scale at the defaults, about a TFP count quantum), which the
+TFP output carries anyway. Sensor noise that moves counts by more than ``tol`` makes the gate
+fail, which costs only the gate's time: the window then takes the whole pipeline.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cfsr._packed import count_packed
+from cfsr._words import PackedWindow
+
+__all__ = ["span_counts", "static_gate"]
+
+
+def _stored(src: PackedWindow, flat: np.ndarray) -> np.ndarray:
+    """Per-pixel values in stored order -> ``(H, W)`` view of the image pixels, stored rows
+    and columns (head columns sit at the right of every stored row, whatever the flips)."""
+    stored_width = int(src.geo[0])
+    return flat[: src.h * stored_width].reshape(src.h, stored_width)[:, : src.w]
+
+
+def _upright(src: PackedWindow, stored: np.ndarray) -> np.ndarray:
+    """A :func:`_stored` view -> the upright int32 image."""
+    _, _, flipud, _, dx = (int(v) for v in src.geo)
+    img = stored[:, ::-1] if dx < 0 else stored
+    return (img[::-1] if flipud else img).astype(np.int32)
+
+
+def span_counts(src: PackedWindow, a: int, b: int) -> np.ndarray:
+    """Spikes per pixel in steps ``[a, b)`` of ``src``, upright int32 ``(H, W)``, counted on
+    the packed bytes (:func:`cfsr._packed.count_packed`, no unpacking)."""
+    return _upright(src, _stored(src, count_packed(src.packed, a, b)))
+
+
+def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarray | None:
+    """The counts of steps ``[end - window, end)`` (upright int32 ``(H, W)``) when no pixel's
+    count there differs by more than ``tol`` spikes from its count in the ``window`` steps
+    before; None when some pixel's does, when ``tol < 0`` (gate off) or when the two spans do
+    not fit in ``[0, end)``.
+
+    Parameters
+    ----------
+    src : PackedWindow
+        The window's packed frames.
+    end : int
+        First step after the spans (the end of the TFP span at t), window steps.
+    window : int
+        Length of each span, steps.
+    tol : int
+        Largest count change, spikes, still called static.
+    """
+    if tol < 0 or window < 1 or end - 2 * window < 0 or end > src.n:
+        return None
+    recent = _stored(src, count_packed(src.packed, end - window, end))
+    before = _stored(src, count_packed(src.packed, end - 2 * window, end - window))
+    # head columns (right of every stored row) are not pixels: only the image's counts
+    return _upright(src, recent) if np.abs(recent - before).max(initial=0) <= tol else None

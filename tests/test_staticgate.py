@@ -1,0 +1,115 @@
+"""The static gate (:mod:`cfsr.methods.staticgate`): a window whose counts did not change is
+CFSR's TFP at once; anything that moves, or a gate switched off, takes the whole pipeline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import cfsr
+from cfsr._bits import pack_frames, unpack_frames
+from cfsr._words import PackedWindow
+from cfsr.layout import Layout
+from cfsr.methods import cfsr_fine as cf
+from cfsr.methods.staticgate import span_counts, static_gate
+from cfsr.methods.tfp import count_spikes, tfp_rate
+
+
+def _integrate_and_fire(rate: np.ndarray, steps: int, seed: int = 0) -> np.ndarray:
+    """Spikes of pixels of constant brightness ``rate`` (spikes per step), random phases."""
+    acc = np.random.default_rng(seed).random(rate.shape)
+    out = np.zeros((steps, *rate.shape), np.uint8)
+    for t in range(steps):
+        acc += rate
+        out[t] = acc >= 1.0
+        acc -= out[t]
+    return out
+
+
+def _static(steps=900, h=24, w=36, seed=0):
+    rate = 0.02 + 0.9 * np.random.default_rng(seed + 1).random((h, w))
+    return _integrate_and_fire(rate, steps, seed)
+
+
+@pytest.mark.parametrize(
+    "flipud,fliplr,head", [(True, False, 0), (False, True, 8), (True, True, 8)]
+)
+def test_span_counts_equal_the_unpacked_count_for_every_layout(flipud, fliplr, head):
+    rng = np.random.default_rng(5)
+    lay = Layout(24, 16, head_cols=head, flipud=flipud, fliplr=fliplr)
+    packed = rng.integers(0, 256, (300, lay.frame_bytes), dtype=np.uint8)
+    frames = unpack_frames(
+        packed, lay.height, lay.width, stored_width=lay.stored_width, flipud=flipud, fliplr=fliplr
+    )
+    src = PackedWindow.from_packed(packed, lay)
+    for a, b in ((0, 300), (17, 200), (250, 251)):
+        np.testing.assert_array_equal(span_counts(src, a, b), count_spikes(frames, a, b))
+
+
+def test_a_static_scene_passes_and_its_counts_are_the_recent_span():
+    s = _static()
+    src = PackedWindow.from_frames(s)
+    got = static_gate(src, 801, 160, 1)
+    assert got is not None
+    np.testing.assert_array_equal(got, count_spikes(s, 641, 801))
+    assert static_gate(src, 801, 160, -1) is None  # gate off
+    assert static_gate(src, 300, 160, 1) is None  # the two spans do not fit before step 0
+
+
+def test_one_pixel_that_changes_by_two_spikes_fails_the_gate():
+    s = _static()
+    src = PackedWindow.from_frames(s)
+    assert static_gate(src, 801, 160, 1) is not None
+    moved = s.copy()
+    y, x = 7, 30
+    quiet = np.flatnonzero(moved[641:801, y, x] == 0)[:2] + 641
+    moved[quiet, y, x] = 1  # two more spikes in the recent span at one pixel
+    assert static_gate(PackedWindow.from_frames(moved), 801, 160, 1) is None
+    assert static_gate(PackedWindow.from_frames(moved), 801, 160, 2) is not None
+
+
+def test_head_columns_are_not_pixels():
+    lay = Layout(32, 8, head_cols=8)
+    frames = _static(600, 8, 32)
+    packed = pack_frames(np.concatenate([frames, np.zeros((600, 8, 8), np.uint8)], axis=2))
+    noisy = packed.reshape(600, 8, 5).copy()
+    noisy[::3, :, 4] = 0xFF  # the head columns fire in bursts: no image pixel changed
+    src = PackedWindow.from_packed(noisy.reshape(600, -1), lay)
+    assert static_gate(src, 500, 160, 1) is not None
+
+
+def test_cfsr_takes_the_gate_on_a_static_window_and_equals_the_full_pipeline(monkeypatch):
+    s = _static()
+    t = 700
+    full, mf = cfsr.reconstruct(s, "cfsr", [t], return_masks=True, adaptive=False)
+
+    def no_history(*args, **kw):
+        raise AssertionError("the coarse-to-fine stages ran on a gated window")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(cf, "_history", no_history)
+        got, mg = cfsr.reconstruct(s, "cfsr", [t], return_masks=True)
+    np.testing.assert_array_equal(got, full)
+    np.testing.assert_array_equal(got[0], np.clip(tfp_rate(s, t, window=160), 0, 1))
+    assert not mg["fine"].any() and not mg["coarse"].any()
+    # another TFP span than the gate's: the output is still that TFP
+    got = cfsr.reconstruct(s, "cfsr", [t], tfp_window=40, tfp_mode="centred")
+    np.testing.assert_array_equal(got[0], tfp_rate(s, t, window=40, mode="centred"))
+
+
+def test_a_moving_scene_or_a_gate_switched_off_takes_the_whole_pipeline(monkeypatch):
+    from cfsr.simulate import simulate
+
+    calls = []
+    history = cf._history
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return history(*args, **kw)
+
+    monkeypatch.setattr(cf, "_history", counted)
+    sim = simulate("disk", 900, seed=0, height=60, width=80)
+    cfsr.reconstruct(sim.spikes, "cfsr", [700])
+    assert calls == [1]
+    cfsr.reconstruct(_static(), "cfsr", [700], static_tol=-1)
+    assert calls == [1, 1]
