@@ -1,9 +1,11 @@
 """Where one CFSR frame's time goes: stage timings on a simulated scene (400 x 250).
 
-Usage: ``python scripts/profile_cfsr.py [scene] [--no-keep-heap]`` (scene: disk, fan, car,
-static, lowlight; default disk). Times the newest computable step of a 4096-step recording
-through the streaming reconstructor, as ``cfsr bench --throughput`` does, after warm-up calls,
-and prints the mean milliseconds of each pipeline stage over 20 frames.
+Usage: ``python scripts/profile_cfsr.py [scene] [--radius R] [--always-full] [--no-keep-heap]``
+(scene: disk, fan, car, static, lowlight; default disk; ``--radius`` sets the disk's radius,
+240 covers the whole frame as in ``cfsr bench --sweep``). Times the newest computable step of
+a 4096-step recording through the streaming reconstructor, as ``cfsr bench --throughput``
+does, after warm-up calls, and prints the mean milliseconds of each pipeline stage over 20
+frames.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import time
 from cfsr._bits import pack_frames
 from cfsr._heap import keep_freed_memory
 from cfsr.layout import Layout
-from cfsr.simulate import simulate
+from cfsr.simulate import make_scene, simulate
 from cfsr.streaming import StreamingReconstructor
 
 STAGES = (
@@ -38,6 +40,10 @@ def main() -> None:
     ap.add_argument(
         "--no-keep-heap", action="store_true", help="leave glibc's malloc settings as they are"
     )
+    ap.add_argument("--radius", type=int, help="disk radius, pixels (the sweep's 56/98/240)")
+    ap.add_argument(
+        "--always-full", action="store_true", help="adaptive=False: every stage on every pixel"
+    )
     args = ap.parse_args()
     if not args.no_keep_heap:
         keep_freed_memory()
@@ -56,8 +62,11 @@ def main() -> None:
 
     for name in STAGES:
         setattr(cf, name, timed(name, getattr(cf, name)))
-    sim = simulate(args.scene, 4096, seed=0, height=250, width=400)
-    sr = StreamingReconstructor("cfsr", Layout(400, 250), slack=4096)
+    opts = {} if args.radius is None else {"radius": args.radius}
+    scene = make_scene(args.scene, height=250, width=400, **opts)
+    sim = simulate(scene, 4096, seed=0)
+    params = {"adaptive": not args.always_full}
+    sr = StreamingReconstructor("cfsr", Layout(400, 250), params=params, slack=4096)
     sr.push(pack_frames(sim.spikes), 0)
     t = sr.latest_step()
     for _ in range(3):

@@ -17,6 +17,7 @@ fail, which costs only the gate's time: the window then takes the whole pipeline
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, prange
 
 from cfsr._packed import count_packed
 from cfsr._words import PackedWindow
@@ -44,6 +45,19 @@ def span_counts(src: PackedWindow, a: int, b: int) -> np.ndarray:
     return _upright(src, _stored(src, count_packed(src.packed, a, b)))
 
 
+@njit(parallel=True, cache=True)
+def _max_change(a, b):  # pragma: no cover - numba
+    """``max |a - b|`` over two ``(H, W)`` views, without the temporaries numpy would make."""
+    h, w = a.shape
+    worst = np.zeros(h, np.int64)
+    for y in prange(h):
+        m = 0
+        for x in range(w):
+            m = max(m, abs(a[y, x] - b[y, x]))
+        worst[y] = m
+    return worst.max() if h else 0
+
+
 def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarray | None:
     """The counts of steps ``[end - window, end)`` (upright int32 ``(H, W)``) when no pixel's
     count there differs by more than ``tol`` spikes from its count in the ``window`` steps
@@ -66,4 +80,4 @@ def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarra
     recent = _stored(src, count_packed(src.packed, end - window, end))
     before = _stored(src, count_packed(src.packed, end - 2 * window, end - window))
     # head columns (right of every stored row) are not pixels: only the image's counts
-    return _upright(src, recent) if np.abs(recent - before).max(initial=0) <= tol else None
+    return _upright(src, recent) if _max_change(recent, before) <= tol else None
