@@ -113,3 +113,23 @@ def test_a_moving_scene_or_a_gate_switched_off_takes_the_whole_pipeline(monkeypa
     assert calls == [1]
     cfsr.reconstruct(_static(), "cfsr", [700], static_tol=-1)
     assert calls == [1, 1]
+
+
+
+@pytest.mark.parametrize("mode", ["trailing", "centred"])
+def test_the_streaming_window_holds_the_gates_spans_with_a_short_history(monkeypatch, mode):
+    """The streaming reconstructor hands a method exactly the steps its window asks for: with
+    a short history the window must still reach back over the gate's two spans."""
+    from cfsr.streaming import StreamingReconstructor
+
+    s = _static(900, 8, 16)
+    short = {"mog_frames": 1, "T": 20, "max_isi": 20, "pm_count": 2, "tfp_mode": mode}
+    sr = StreamingReconstructor("cfsr", Layout(16, 8), params=short, slack=900)
+    sr.push(pack_frames(s), 0)
+
+    def no_history(*args, **kw):
+        raise AssertionError("the coarse-to-fine stages ran on a gated window")
+
+    monkeypatch.setattr(cf, "_history", no_history)
+    out = sr.compute(sr.latest_step())
+    assert not out.masks["fine"].any()

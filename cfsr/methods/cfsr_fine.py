@@ -139,6 +139,10 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
         cb, hb + (p["mog_frames"] - 1) * p["mog_stride"], pm + reach, p["daisi_span"] + reach
     )
     after = max(ca, ha, pm + reach, p["daisi_span"] + reach)
+    if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
+        w = p["tfp_window"]
+        tfp_after = w - w // 2 - 1 if p["tfp_mode"] == "centred" else 0  # as tfp_span
+        before = max(before, 2 * p["static_window"] - tfp_after - 1)
     return before, after
 
 
