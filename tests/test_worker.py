@@ -89,6 +89,11 @@ def test_deterministic_output_equals_offline_and_method_switch(rec, pipeline):
     st = sup.stats()
     assert st["ring_lost_frames"] == 0  # blocking mode: the worker saw every frame
     assert st["worker_skip_frames"] == 0
+    # the supervisor learns of an applied config from its monitor thread, which drains the
+    # worker's events every 0.1 s: the frames of the new method can arrive before that
+    end = time.monotonic() + 10.0
+    while sup.applied_version != sup.config["version"] and time.monotonic() < end:
+        time.sleep(0.02)
     assert sup.applied_version == sup.config["version"]
 
 
