@@ -93,6 +93,8 @@ def test_bench_quick_sweep(tmp_path, capsys):
             if r["method"] == "cfsr":
                 # the bar: the adaptive pipeline's error within 0.1 dB of the full one
                 assert abs(r["psnr_delta_vs_full"]) <= 0.1, (scene, r)
+    gates = [(r["adaptive"], r["static_gate"]) for r in by["static"] if r["method"] == "cfsr"]
+    assert gates == [(True, True), (True, False), (False, False)]
     static = [r for r in by["static"] if r["method"] == "cfsr"]
     assert all(r["psnr_delta_vs_full"] == 0.0 and r["fine_fraction"] == 0.0 for r in static)
     assert "worst frame" in capsys.readouterr().out

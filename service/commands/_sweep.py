@@ -76,7 +76,10 @@ def sweep(args: argparse.Namespace, bar) -> dict[str, Any]:
                     "motion_fraction": motion,
                     "method": name,
                     "adaptive": params.get("adaptive"),
-                    "static_gate": None if name != "cfsr" else params.get("static_tol") != -1,
+                    # the gate is part of the adaptive pipeline: off when adaptive is
+                    "static_gate": None
+                    if name != "cfsr"
+                    else bool(params["adaptive"]) and params.get("static_tol") != -1,
                     "ms_per_frame": sec * 1e3,
                     "psnr_all": float(np.mean(ps)),
                     "psnr_frames": ps,
