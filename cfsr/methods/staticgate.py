@@ -1,17 +1,18 @@
 """The static gate: a window whose spike counts did not change is output as TFP at once.
 
-CFSR's coarse stage proves a pixel static by its distinct ISIs (Eq. 5) over the union of the
-K history frames' distinction windows (~650 steps at the defaults), which reads ~5 times the
-steps a TFP frame reads. When a whole window is static that proof, MOG and DAISI only confirm
-what the counts already say, and CFSR's output is the TFP (Eq. 4). The gate reads two spans of
-``window`` steps ending where the TFP span ends and passes when no pixel's count differs
-between them by more than ``tol`` spikes: with constant brightness an integrate-and-fire pixel
-fires ``floor`` or ``ceil`` of ``rate * window`` times in any span of ``window`` steps, so a
-static scene passes at ``tol = 1``, while anything that moves changes the counts of the pixels
-it crosses. What a passing window can still hide is a rate change under ``(tol + 1) / window``
-spikes per step (1.25 % of full scale at the defaults, about a TFP count quantum), which the
-TFP output carries anyway. Sensor noise that moves counts by more than ``tol`` makes the gate
-fail, which costs only the gate's time: the window then takes the whole pipeline.
+CFSR's coarse stage proves a pixel static by its distinct ISIs (Eq. 5) over the union of the K
+history frames' distinction windows (~650 steps at the defaults; with the margins the history
+scan reads ~860), 4-5 times the steps a TFP frame reads. When a whole window is static, that
+proof, MOG and DAISI only confirm what the counts already say, and CFSR's output is the TFP
+(Eq. 4). The gate reads two spans of ``window`` steps ending where the TFP span ends and passes
+when no pixel's count differs between them by more than ``tol`` spikes: with constant
+brightness an integrate-and-fire pixel fires ``floor`` or ``ceil`` of ``rate * window`` times
+in any span of ``window`` steps, so a static scene passes at ``tol = 1``, while anything that
+moves changes the counts of the pixels it crosses. What a passing window can still hide is a
+rate change under ``(tol + 1) / window`` spikes per step (1.25 % of full scale at the defaults,
+about a TFP count quantum), which the TFP output carries anyway. Sensor noise that moves counts
+by more than ``tol`` makes the gate fail, which costs only the gate's time: the window then
+takes the whole pipeline.
 """
 
 from __future__ import annotations

@@ -76,7 +76,7 @@ def sweep(args: argparse.Namespace, bar) -> dict[str, Any]:
                     "motion_fraction": motion,
                     "method": name,
                     "adaptive": params.get("adaptive"),
-                    # the gate is part of the adaptive pipeline: off when adaptive is
+                    # the gate belongs to the adaptive pipeline
                     "static_gate": None
                     if name != "cfsr"
                     else bool(params["adaptive"]) and params.get("static_tol") != -1,
@@ -104,8 +104,7 @@ def _variant(r: dict[str, Any]) -> str:
         return r["method"]
     if not r["adaptive"]:
         return "cfsr always-full"
-    # rows of JSON files written before the gate existed have no "static_gate"
-    return "cfsr adaptive" if r.get("static_gate", True) else "cfsr adaptive, gate off"
+    return "cfsr adaptive" if r["static_gate"] else "cfsr adaptive, gate off"
 
 
 def print_sweep(res: dict[str, Any]) -> None:
