@@ -9,8 +9,9 @@ when no pixel's count differs between them by more than ``tol`` spikes: with con
 brightness an integrate-and-fire pixel fires ``floor`` or ``ceil`` of ``rate * window`` times
 in any span of ``window`` steps, so a static scene passes at ``tol = 1``, while anything that
 moves changes the counts of the pixels it crosses. What a passing window can still hide is a
-rate change under ``(tol + 1) / window`` spikes per step (1.25 % of full scale at the defaults,
-about a TFP count quantum), which the TFP output carries anyway. Sensor noise that moves counts
+change of the two spans' mean rates under ``(tol + 2) / window`` spikes per step (each count is
+within one spike of its span's integral; 1.9 % of full scale at the defaults), or motion that
+leaves both counts equal. Sensor noise that moves counts
 by more than ``tol`` makes the gate fail, which costs only the gate's time: the window then
 takes the whole pipeline.
 """
