@@ -41,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--sweep",
         action="store_true",
         help="cost and error of the adaptive pipeline against the always-full one "
-        "as the dynamic area grows (static, ~10%%, ~30%%, full motion)",
+        "(and against adaptive with its static gate off) as the dynamic area grows "
+        "(static, ~10%%, ~30%%, full motion)",
     )
     p.add_argument(
         "--methods", help="override the grid: comma-separated specs, e.g. tfi,tfp:window=32,cfsr"
