@@ -140,9 +140,8 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
     )
     after = max(ca, ha, pm + reach, p["daisi_span"] + reach)
     if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
-        w = p["tfp_window"]
-        tfp_after = w - w // 2 - 1 if p["tfp_mode"] == "centred" else 0  # as tfp_span
-        before = max(before, 2 * p["static_window"] - tfp_after - 1)
+        _, tfp_end = tfp_span(0, 1 << 62, p["tfp_window"], p["tfp_mode"])  # steps after 0, +1
+        before = max(before, 2 * p["static_window"] - tfp_end)
     return before, after
 
 
