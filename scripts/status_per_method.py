@@ -32,7 +32,7 @@ async def main() -> int:
     ap.add_argument("--port", type=int, default=8765)
     a = ap.parse_args()
     base = f"http://127.0.0.1:{a.port}"
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(a.port),
+    proc = subprocess.Popen([sys.executable, "-m", "cfsr", "serve", "--port", str(a.port),
                              "--log-level", "warning"])
     try:
         async with httpx.AsyncClient(base_url=base, timeout=10) as c:

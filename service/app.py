@@ -2,8 +2,11 @@
 
 ``create_app(settings)`` builds an app whose lifespan owns every resource: it starts the
 source, acquisition, ring and worker (:class:`service.runtime.Runtime`) and the frame hub on
-startup, and stops them in reverse on shutdown. Routers are split by concern
-(``service/routers``); shared state reaches handlers through dependencies (``service/deps``).
+startup, and stops them in reverse on shutdown. ``cfsr serve`` starts the runtime itself first,
+so that a source that cannot open is one line and not a server trace, and hands it over with
+``create_app(settings, runtime=rt)``: the lifespan then owns (and stops) that one. Routers are
+split by concern (``service/routers``); shared state reaches handlers through dependencies
+(``service/deps``).
 """
 
 from __future__ import annotations
@@ -29,16 +32,20 @@ log = logging.getLogger("cfsr.app")
 def viewer_dir(settings: Settings | None = None) -> Path:
     if settings is not None and settings.viewer_dir is not None:
         return Path(settings.viewer_dir)
-    return Path(__file__).resolve().parents[1] / "viewer"
+    # package data: the viewer ships inside the wheel, beside this module
+    return Path(__file__).resolve().parent / "viewer"
 
 
-def create_app(settings: Settings) -> FastAPI:
+def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
+    """The app; ``runtime`` is an already started :class:`Runtime` to own (else one is made)."""
     from service.routers import config, debug, health, media, record, sources, status
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        rt = Runtime(settings)
-        await asyncio.to_thread(rt.start)
+        rt = runtime
+        if rt is None:
+            rt = Runtime(settings)
+            await asyncio.to_thread(rt.start)
         hub = FrameHub(rt.slot)
         app.state.runtime = rt
         app.state.hub = hub

@@ -85,6 +85,7 @@ class Runtime:
         self._lost_base: dict[str, float] = {}
         self._sampler_stop = threading.Event()
         self._sampler: threading.Thread | None = None
+        self._stopped = False
 
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -93,21 +94,30 @@ class Runtime:
         m = get_method(self.config["method"])
         self.config["method"] = m.name
         self.config["params"] = resolve_params(m, self.config["params"])
-        self.slot = FrameSlot.create()
-        spec = self.settings.source
-        src = self.catalog.open(spec)
-        self._install(src, spec.id)
-        self.worker = WorkerSupervisor(
-            self.slot, self._worker_config(), hang_timeout=self.settings.worker_hang_timeout
-        )
-        assert self.ring is not None
-        self.worker.start(str(self.ring.path), self.source.info.layout.to_dict())
+        try:
+            self.slot = FrameSlot.create()
+            spec = self.settings.source
+            src = self.catalog.open(spec)
+            self._install(src, spec.id)
+            self.worker = WorkerSupervisor(
+                self.slot, self._worker_config(), hang_timeout=self.settings.worker_hang_timeout
+            )
+            assert self.ring is not None
+            self.worker.start(str(self.ring.path), self.source.info.layout.to_dict())
+        except BaseException:
+            # a start that fails half-way leaves no segment, thread or worker behind
+            self.stop()
+            raise
         self._sampler = threading.Thread(target=self._sample, name="cfsr-rates", daemon=True)
         self._sampler.start()
 
     def stop(self) -> None:
+        """Stop everything started so far; safe to call twice and after a failed start."""
         self._sampler_stop.set()
         with self._lock:
+            if self._stopped:
+                return
+            self._stopped = True
             if self.recorder is not None:
                 self.last_recording = self.recorder.stop()
                 self.recorder = None

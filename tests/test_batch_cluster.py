@@ -8,7 +8,7 @@ import pytest
 
 import cfsr
 from cfsr.batch import plan_chunks
-from service.cli import main
+from cfsr.cli import main
 
 
 def test_plan_chunks():

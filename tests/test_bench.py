@@ -9,7 +9,7 @@ import math
 import pytest
 
 from cfsr.bench import format_rows, pareto_front
-from service.cli import main
+from cfsr.cli import main
 
 
 def test_pareto_front():

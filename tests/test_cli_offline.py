@@ -11,7 +11,7 @@ import pytest
 from PIL import Image
 
 import cfsr
-from service.cli import main
+from cfsr.cli import main
 
 
 @pytest.fixture
@@ -125,12 +125,12 @@ def test_methods_command(capsys):
 
 def test_console_script_help():
     r = subprocess.run(
-        [sys.executable, "-m", "service.cli", "--help"], capture_output=True, text=True, check=True
+        [sys.executable, "-m", "cfsr", "--help"], capture_output=True, text=True, check=True
     )
     for cmd in ("serve", "reconstruct", "info", "simulate", "evaluate", "bench"):
         assert cmd in r.stdout
     r = subprocess.run(
-        [sys.executable, "-m", "service.cli", "reconstruct", "--help"],
+        [sys.executable, "-m", "cfsr", "reconstruct", "--help"],
         capture_output=True,
         text=True,
         check=True,

@@ -184,6 +184,19 @@ def test_import_cfsr_does_not_load_camera_stack():
         "'replay', 'service', 'cv2') if m in sys.modules]; print(bad); assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+    # a reconstruction loads none of the extras either (here they are installed, so this is
+    # about imports; tests/test_packaging.py checks a base install where they are absent)
+    code = (
+        "import sys, numpy as np, cfsr\n"
+        "x = (np.random.default_rng(0).random((300, 16, 24)) < 0.2).astype(np.uint8)\n"
+        "cfsr.reconstruct(x, 'tfp', [200], window=32)\n"
+        "cfsr.reconstruct(x, 'csr', [200])\n"
+        "bad = [m for m in ('fastapi', 'starlette', 'uvicorn', 'websockets', 'usb', "
+        "'prometheus_client', 'dask', 'distributed', 'matplotlib', 'driver', 'replay', "
+        "'service') if m in sys.modules]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
     assert cfsr.__version__
 
 

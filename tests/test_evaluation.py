@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from cfsr.cli import main
 from cfsr.evaluation import (
     MethodSpec,
     default_times,
@@ -19,7 +20,6 @@ from cfsr.evaluation import (
     summarize,
 )
 from cfsr.methods import registry
-from service.cli import main
 
 H, W = 48, 64
 STEPS = 300

@@ -200,7 +200,7 @@ def test_record_command(tmp_path, data_dir):
 
     out = tmp_path / "r.dat"
     r = subprocess.run(
-        [sys.executable, "-m", "service.cli", "record", "--replay", str(data_dir / "a.dat"),
+        [sys.executable, "-m", "cfsr", "record", "--replay", str(data_dir / "a.dat"),
          "--frames", "3000", "-o", str(out)],
         capture_output=True, text=True, timeout=120,
     )
@@ -211,7 +211,7 @@ def test_record_command(tmp_path, data_dir):
     assert np.array_equal(np.asarray(rec.packed()), np.asarray(src.packed(0, 3000)))
     side = json.loads(out.with_name("r.dat.json").read_text())
     assert side["clean_capture"] is True and side["drop_map"] == []
-    r = subprocess.run([sys.executable, "-m", "service.cli", "record", "--sim", "pattern",
+    r = subprocess.run([sys.executable, "-m", "cfsr", "record", "--sim", "pattern",
                         "--frames", "10", "-o", str(out)], capture_output=True, text=True)
     assert r.returncode == 2 and "exists" in r.stderr
 
@@ -299,7 +299,7 @@ def test_token_is_enforced(data_dir):
 
 
 def test_non_loopback_bind_needs_token():
-    from service.cli import build_parser
+    from cfsr.cli import build_parser
     from service.commands.serve import build_settings
 
     args = build_parser().parse_args(["serve", "--host", "0.0.0.0"])
@@ -331,8 +331,8 @@ def test_serve_without_arguments_plays_the_demo(tmp_path):
         "CFSR_DEMO_STEPS": "1200",
     }
     s = LiveServer([], env=env, port=8000,
-                   command=[sys.executable, "-m", "service.cli", "serve"])
-    s.cmd = [sys.executable, "-m", "service.cli", "serve"]  # truly no arguments
+                   command=[sys.executable, "-m", "cfsr", "serve"])
+    s.cmd = [sys.executable, "-m", "cfsr", "serve"]  # truly no arguments
     with s:
         out = s.output()
         assert "http://127.0.0.1:8000/" in out

@@ -106,7 +106,7 @@ def test_catalog_lists_only_the_data_folder(tmp_path):
 def test_serve_on_a_busy_port_fails_with_one_clear_line(capsys):
     import socket
 
-    from service.cli import main
+    from cfsr.cli import main
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import cfsr
+from cfsr.cli import main
 from cfsr.simulate import (
     NOISE_PRESETS,
     SCENES,
@@ -19,14 +20,13 @@ from cfsr.simulate import (
     simulate,
     simulate_to_dat,
 )
-from service.cli import main
 
 H, W = 48, 64
 MOVING = ("disk", "fan", "car", "lowlight")
 
 
 def test_scene_names_match_cli_list():
-    from service.commands.simulate import SCENE_NAMES
+    from cfsr.cli.simulate import SCENE_NAMES
 
     assert tuple(SCENES) == SCENE_NAMES
 

@@ -1,6 +1,7 @@
 """The browser viewer in a real headless Chromium (Playwright, system Chromium; never
-``playwright install``): the page loads, frames change, switching the method changes the
-picture, a mask overlay toggles, the heat map shows, and the live figures update."""
+``playwright install``), served by the installed wheel (not the checkout): the page loads,
+frames change, switching the method changes the picture, a mask overlay toggles, the heat map
+shows, and the live figures update."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import require_tier
+from wheelenv import clean_env
 
 sys.path.insert(0, str(Path(__file__).parent / "usb"))
 from livehelpers import LiveServer, write_pattern  # noqa: E402
@@ -51,10 +53,14 @@ def browser():
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
+def server(tmp_path_factory, live_install):
+    """The service as a user gets it: the installed wheel's ``cfsr serve`` (``cfsr[live]`` in a
+    fresh venv), started from a folder that is not the checkout."""
     d = tmp_path_factory.mktemp("viewer")
     dat = write_pattern(d / "data" / "pattern.dat", 4000)
-    with LiveServer(["--replay", str(dat), "--data-dir", str(d / "data")]) as s:
+    with LiveServer(["--replay", str(dat), "--data-dir", str(d / "data")],
+                    command=[str(live_install / "cfsr"), "serve"], cwd=d,
+                    env=clean_env(live_install)) as s:
         yield s
 
 

@@ -1,11 +1,14 @@
 """``cfsr record``: record spikes from a source (USB camera, replay, simulator) to .dat + sidecar,
-headless. The sidecar carries the drop map (frames lost and where)."""
+headless. The sidecar carries the drop map (frames lost and where). Needs the ``live`` extra for
+the USB camera (pyusb); replay and simulator sources need only the base install."""
 
 from __future__ import annotations
 
 import argparse
 import time
 from pathlib import Path
+
+HELP = "record spikes from a source (USB camera, replay, simulator) to .dat + sidecar"
 
 
 def _int_auto(text: str) -> int:
@@ -35,6 +38,9 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise ValueError(f"{out} exists (use --force to overwrite)")
     if args.usb:
+        from cfsr.cli._extras import require_extra
+
+        require_extra("live", ["usb"])
         from driver.usb import UsbCameraSource
 
         kw = {k: v for k, v in (("vid", args.vid), ("pid", args.pid)) if v is not None}

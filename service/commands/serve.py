@@ -1,19 +1,36 @@
-"""``cfsr serve``: the live service and browser viewer.
+"""``cfsr serve``: the live service and browser viewer (needs the ``live`` extra).
 
 With no arguments it plays the built-in demo recording (simulated on first use and cached)
-on http://127.0.0.1:8000/. FastAPI, uvicorn and pyusb are imported inside :func:`run` only.
+on http://127.0.0.1:8000/. FastAPI, uvicorn and pyusb are imported inside :func:`run` only, after
+the check that the ``live`` extra is installed. Every start-up problem (missing extra or viewer
+files, bad flag, taken port, unusable data folder, a source that cannot open) is one line on
+stderr and exit status 2, with nothing left behind in ``/dev/shm``.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
 import sys
+import tempfile
 from pathlib import Path
+
+HELP = "start the live service and browser viewer (needs cfsr[live])"
 
 
 def _int_auto(text: str) -> int:
     return int(text, 0)
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port (1..65535)")
+    return port
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,9 +42,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pid", type=_int_auto, help="USB product id (with --usb)")
     p.add_argument("--host", default="127.0.0.1",
                    help="bind address (default 127.0.0.1; anything else needs --token)")
-    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--port", type=_port, default=8000, help="port, 1..65535 (default 8000)")
     p.add_argument("--token", default=os.environ.get("CFSR_TOKEN"),
-                   help="access token the API requires (default $CFSR_TOKEN)")
+                   help="access token the API requires (default $CFSR_TOKEN; prefer the "
+                   "variable: a flag is visible to other users in the process list)")
     p.add_argument("--data-dir", type=Path, default=None,
                    help="folder of recordings offered in the viewer; recordings are written to "
                    "DATA_DIR/recordings (default $CFSR_DATA_DIR or ~/.local/share/cfsr)")
@@ -92,32 +110,95 @@ def _check_port(host: str, port: int) -> None:
             ) from None
 
 
+def _check_data_dir(path: Path) -> None:
+    """The data folder must be a folder we can list and write recordings into."""
+    if path.exists() and not path.is_dir():
+        raise OSError(f"data folder {path} is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"data folder {path} cannot be created ({exc.strerror or exc})") from None
+    if not os.access(path, os.R_OK | os.W_OK | os.X_OK):
+        raise OSError(f"data folder {path} is not readable and writable by this user")
+    try:
+        next(os.scandir(path), None)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise OSError(f"data folder {path} is not usable ({exc.strerror or exc})") from None
+
+
+def _check_viewer(settings) -> None:
+    from service.app import viewer_dir
+
+    page = viewer_dir(settings) / "index.html"
+    if not page.is_file():
+        raise OSError(
+            f"the viewer's files are missing from this install ({page} not found); "
+            "reinstall with: pip install --force-reinstall 'cfsr[live]'"
+        )
+
+
+def _remove_stale_segments() -> int:
+    """Shared-memory files of a server that crashed (its pid is gone): removed, and counted."""
+    from driver.ring import remove_stale_files
+
+    dirs = {Path("/dev/shm"), Path(tempfile.gettempdir())}
+    if os.environ.get("CFSR_RING_DIR"):
+        dirs.add(Path(os.environ["CFSR_RING_DIR"]))
+    prefixes = ("cfsr-ring", "cfsr-frame")
+    return sum(remove_stale_files(d, prefix) for d in dirs for prefix in prefixes)
+
+
+def _token_note(token: str | None) -> str:
+    # Never print the token itself (logs and terminals are shared): a fingerprint lets the
+    # user check which token the server took.
+    if not token:
+        return ""
+    fp = hashlib.sha256(token.encode()).hexdigest()[:8]
+    return f"; access token required (sha256 {fp}..., from --token or $CFSR_TOKEN)"
+
+
 def run(args: argparse.Namespace) -> int:
+    from cfsr.cli._extras import require_extra
+
+    require_extra("live")
     settings = build_settings(args)  # refuses a non-loopback bind without a token
+    _check_viewer(settings)
     _check_port(settings.host, settings.port)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    _check_data_dir(settings.data_dir)
+    say = lambda m: print(f"cfsr serve: {m}", flush=True)  # noqa: E731
+    stale = _remove_stale_segments()
+    if stale:
+        say(f"removed {stale} shared-memory file(s) left by a server that did not stop cleanly")
     if settings.source.kind == "demo":
         from service.demo import ensure_demo
 
-        ensure_demo(settings.demo_steps, say=lambda m: print(f"cfsr serve: {m}", flush=True))
+        ensure_demo(settings.demo_steps, say=say)
 
     import uvicorn
 
     from service.app import create_app
+    from service.runtime import Runtime
 
-    app = create_app(settings)
+    rt = Runtime(settings)
+    try:
+        rt.start()  # opens the source, creates the ring and the frame slot, starts the worker
+    except Exception as exc:  # noqa: BLE001 - any failure to start is one line, not a trace
+        rt.stop()
+        print(f"cfsr serve: error: could not start: {exc}", file=sys.stderr)
+        return 2
+    app = create_app(settings, runtime=rt)
     host = settings.host
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{settings.port}/"
-    if settings.token:
-        url += f"?token={settings.token}"
 
     class _Server(uvicorn.Server):
         async def startup(self, sockets=None):
             await super().startup(sockets)
             if self.started:
-                print(f"cfsr serve: viewer at {url}  (source: {settings.source.id}; "
-                      f"Ctrl+C to stop)", flush=True)
+                say(f"viewer at {url}  (source: {settings.source.id}"
+                    f"{_token_note(settings.token)}; Ctrl+C to stop)")
 
     config = uvicorn.Config(
         app,
@@ -132,8 +213,13 @@ def run(args: argparse.Namespace) -> int:
         workers=1,
     )
     server = _Server(config)
-    server.run()
+    try:
+        server.run()
+    except SystemExit:
+        pass  # uvicorn exits when it cannot bind; reported below
+    finally:
+        rt.stop()  # idempotent: normally the lifespan has stopped it already
     if not server.started:
         print(f"cfsr serve: error: could not start on {host}:{settings.port}", file=sys.stderr)
-        return 1
+        return 2
     return 0

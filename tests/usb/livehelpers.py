@@ -36,7 +36,9 @@ def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:
 
 class LiveServer:
     """``cfsr serve ARGS`` on 127.0.0.1:<free port>; ``prefix`` runs it under a wrapper
-    (e.g. ``umockdev-wrapper``) or a launcher script instead of ``python -m service.cli``."""
+    (e.g. ``umockdev-wrapper``) or a launcher script instead of ``python -m cfsr``; ``command``
+    may also be an installed ``cfsr`` (with ``cwd`` outside the checkout and ``env`` of that
+    install)."""
 
     def __init__(
         self,
@@ -47,11 +49,13 @@ class LiveServer:
         command: list[str] | None = None,
         token: str | None = None,
         startup_timeout: float = 180.0,
+        cwd: Path | None = None,
     ) -> None:
+        self.cwd = cwd or REPO
         self.port = port or free_port()
         self.token = token
         self.url = f"http://127.0.0.1:{self.port}"
-        base = command or [sys.executable, "-m", "service.cli", "serve"]
+        base = command or [sys.executable, "-m", "cfsr", "serve"]
         self.cmd = [*base, "--host", "127.0.0.1", "--port", str(self.port), *args]
         if port is not None and "--port" in args:
             self.cmd = [*base, *args]
@@ -65,7 +69,7 @@ class LiveServer:
     def start(self) -> LiveServer:
         fh = open(self.log, "wb")  # noqa: SIM115 - closed with the process
         self.proc = subprocess.Popen(
-            self.cmd, cwd=REPO, env=self.env, stdout=fh, stderr=subprocess.STDOUT,
+            self.cmd, cwd=self.cwd, env=self.env, stdout=fh, stderr=subprocess.STDOUT,
             start_new_session=True,
         )
         fh.close()

@@ -74,7 +74,7 @@ def main() -> int:
 
     th = threading.Thread(target=background, daemon=True)
     th.start()
-    from service.cli import main as cli_main
+    from cfsr.cli import main as cli_main
 
     try:
         return cli_main(argv[cut + 1 :])

@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from service.commands._common import add_input_arguments, open_input, parse_params, parse_times
+from cfsr.cli._common import add_input_arguments, open_input, parse_params, parse_times
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -101,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
     from cfsr.batch import ChunkTask, plan_chunks, run_batch
     from cfsr.methods import get_method, resolve_params
 
+    if args.cluster:
+        from cfsr.cli._extras import require_extra
+
+        require_extra("cluster")
     params = parse_params(args.param)
     m = get_method(args.method)
     resolve_params(m, params, args.preset)  # validate before any work

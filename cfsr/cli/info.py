@@ -7,7 +7,7 @@ import json
 import sys
 import warnings
 
-from service.commands._common import add_input_arguments, open_input
+from cfsr.cli._common import add_input_arguments, open_input
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from service.commands.simulate import SCENE_NAMES
+from cfsr.cli.simulate import SCENE_NAMES
 
 
 def _times(text: str) -> list[int]:

@@ -1,0 +1,7 @@
+"""``python -m cfsr``: the ``cfsr`` command line."""
+
+import sys
+
+from cfsr.cli import main
+
+sys.exit(main())

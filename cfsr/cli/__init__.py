@@ -1,0 +1,144 @@
+"""The ``cfsr`` command line (``cfsr ...`` or ``python -m cfsr ...``).
+
+The offline commands live here, in ``cfsr/cli/<name>.py``, and need nothing beyond the base
+install. Commands of other layers (``serve`` and ``record`` from the live service) join through
+the ``cfsr.commands`` entry-point group, the way pytest and Flask find plugin commands, so this
+package never imports anything above it: an entry point names a module that defines ``HELP``
+(one line), ``add_arguments(parser)`` and ``run(args) -> int``.
+
+Sub-command modules import their heavy dependencies inside ``run``, so ``cfsr info`` never loads
+FastAPI and ``cfsr serve`` never pays for the simulator until it needs it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Callable
+from importlib.metadata import entry_points
+from types import ModuleType
+
+from cfsr.cli._extras import EXTRAS, MissingExtra, install_hint, missing_extra_message
+
+__all__ = ["COMMANDS", "PLUGIN_GROUP", "build_parser", "main"]
+
+#: the offline commands: name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "reconstruct": ("cfsr.cli.reconstruct", "reconstruct images from a spike file"),
+    "info": ("cfsr.cli.info", "describe a spike file: geometry, duration, rates, problems"),
+    "simulate": ("cfsr.cli.simulate", "simulate a scene to .dat with ground truth"),
+    "evaluate": ("cfsr.cli.evaluate", "PSNR/SSIM table of methods on scenes with ground truth"),
+    "methods": ("cfsr.cli.methods", "list reconstruction methods and their parameters"),
+    "bench": ("cfsr.cli.bench", "benchmark run time against error, and throughput"),
+}
+
+#: entry-point group through which other layers add commands
+PLUGIN_GROUP = "cfsr.commands"
+
+#: commands an extra brings: shown (and explained) even when that extra's part is absent
+EXTRA_COMMANDS: dict[str, tuple[str, str]] = {
+    "serve": ("live", "start the live service and browser viewer"),
+    "record": ("live", "record spikes from a source to .dat + sidecar"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line (``cfsr serve: error: ...``) with exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def version() -> str:
+    """The installed distribution's version (the package's own when run from a checkout)."""
+    try:
+        from importlib.metadata import PackageNotFoundError
+        from importlib.metadata import version as dist_version
+
+        return dist_version("cfsr")
+    except PackageNotFoundError:
+        from cfsr import __version__
+
+        return __version__
+
+
+def _plugin_modules() -> dict[str, Callable[[], ModuleType]]:
+    """name -> loader of each command registered in :data:`PLUGIN_GROUP` (not yet imported)."""
+    out: dict[str, Callable[[], ModuleType]] = {}
+    for ep in entry_points(group=PLUGIN_GROUP):
+        if ep.name not in COMMANDS:  # a plugin never shadows an offline command
+            out.setdefault(ep.name, ep.load)
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="cfsr",
+        description="Spike-camera reconstruction: library, offline tools and live service. "
+        "Time is in steps (1 step = 25 us at 40 kHz); rates are spikes per step.",
+        epilog="Extras: "
+        + "; ".join(f"cfsr[{k}] adds {v[0]}" for k, v in EXTRAS.items())
+        + ". 'cfsr COMMAND --help' explains each command.",
+    )
+    parser.add_argument("--version", action="version", version=f"cfsr {version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (modname, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(_module=modname)
+        importlib.import_module(modname).add_arguments(p)
+    plugins = _plugin_modules()
+    for name in sorted(set(plugins) | set(EXTRA_COMMANDS)):
+        extra, help_ = EXTRA_COMMANDS.get(name, (None, ""))
+        problem = None
+        mod = None
+        if name in plugins:
+            try:
+                mod = plugins[name]()
+            except ImportError as exc:
+                problem = str(exc)
+        else:
+            problem = "not installed"
+        help_ = getattr(mod, "HELP", help_) or name
+        if mod is None:
+            hint = f"; {install_hint(extra)}" if extra else ""
+            help_ = f"{help_} (unavailable: {problem}{hint})"
+        p = sub.add_parser(name, help=help_, description=help_)
+        if mod is None:
+            p.set_defaults(_unavailable=f"{problem}{hint}")
+            p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+            continue
+        p.set_defaults(_module=mod.__name__)
+        mod.add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    prog = f"cfsr {args.command}"
+    if getattr(args, "_unavailable", None):
+        print(f"{prog}: error: this command is not available: {args._unavailable}",
+              file=sys.stderr)
+        return 2
+    mod = importlib.import_module(args._module)
+    from cfsr._heap import keep_freed_memory
+
+    keep_freed_memory()  # long runs reuse freed frame arrays instead of faulting pages in
+    try:
+        return int(mod.run(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except MissingExtra as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        msg = missing_extra_message(exc)
+        if msg is None:
+            raise
+        print(f"{prog}: error: {msg}", file=sys.stderr)
+        return 2
+    except (ValueError, OSError) as exc:
+        # Bad input is reported as one clear line, not a traceback.
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
