@@ -38,7 +38,8 @@ def viewer_dir(settings: Settings | None = None) -> Path:
 
 def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     """The app; ``runtime`` is an already started :class:`Runtime` to own (else one is made)."""
-    from service.routers import config, debug, health, media, record, sources, status
+    from service.routers import config, debug, health, media, record, session, sources, status
+    from service.security import HostOriginGuard, allowed_hosts
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -66,16 +67,24 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
             "Units: time in steps (1 step = 25 us at 40 kHz), rates in spikes/step. "
             "Frames stream over `WS /ws` (binary: 64-byte header, 8-bit image, coarse and fine "
             "masks as bit planes) and `GET /stream.mjpg`. When the service was started with an "
-            "access token, send it as `Authorization: Bearer ...` or `?token=`."
+            "access token, send it as `Authorization: Bearer ...` (or `X-CFSR-Token`); the "
+            "viewer trades it once for a session cookie (`POST /api/session`). Requests from "
+            "another web page (`Origin`) and unknown `Host` names are refused."
         ),
         lifespan=lifespan,
     )
     app.state.settings = settings
     app.state.metrics = status.make_registry(app)
-    for r in (health, status, config, sources, record, media):
+    for r in (health, session, status, config, sources, record, media):
         app.include_router(r.router)
     if settings.test_hooks:
         app.include_router(debug.router)
+    # outermost: a request from a foreign page or a rebinding name goes no further
+    app.add_middleware(
+        HostOriginGuard,
+        hosts=allowed_hosts(settings.host, settings.allowed_hosts),
+        origins=settings.allowed_origins,
+    )
     vd = viewer_dir(settings)
     if vd.is_dir():
         app.mount("/", StaticFiles(directory=vd, html=True), name="viewer")

@@ -9,6 +9,7 @@ from fastapi import Depends, HTTPException, Request, WebSocket, status
 
 from service.hub import FrameHub
 from service.runtime import Runtime
+from service.security import SESSION_COOKIE, session_ok
 from service.settings import Settings
 
 __all__ = [
@@ -34,24 +35,28 @@ def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def _supplied(headers, query) -> str | None:
+def _supplied(headers) -> str | None:
     auth = headers.get("authorization", "")
     if auth.lower().startswith("bearer "):
         return auth[7:].strip()
-    return headers.get("x-cfsr-token") or query.get("token")
+    return headers.get("x-cfsr-token")
 
 
-def token_ok(settings: Settings, headers, query) -> bool:
+def token_ok(settings: Settings, headers, cookies) -> bool:
+    """The token from a header (``Authorization: Bearer``, ``X-CFSR-Token``) or the viewer's
+    session cookie (:mod:`service.security`); never from the URL, which servers log."""
     if not settings.token:
         return True
-    given = _supplied(headers, query)
-    return given is not None and hmac.compare_digest(given.encode(), settings.token.encode())
+    given = _supplied(headers)
+    if given is not None:
+        return hmac.compare_digest(given.encode(), settings.token.encode())
+    return session_ok(settings.token, cookies.get(SESSION_COOKIE))
 
 
 def require_token(request: Request) -> None:
-    """When the service has a token, every API call must carry it (Bearer, X-CFSR-Token or
-    ``?token=``)."""
-    if not token_ok(request.app.state.settings, request.headers, request.query_params):
+    """When the service has a token, every API call must carry it (header or session
+    cookie)."""
+    if not token_ok(request.app.state.settings, request.headers, request.cookies):
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             "missing or wrong access token",
@@ -60,7 +65,7 @@ def require_token(request: Request) -> None:
 
 
 def ws_token_ok(ws: WebSocket) -> bool:
-    return token_ok(ws.app.state.settings, ws.headers, ws.query_params)
+    return token_ok(ws.app.state.settings, ws.headers, ws.cookies)
 
 
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]

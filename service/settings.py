@@ -76,6 +76,10 @@ class Settings:
     worker_hang_timeout: float = 120.0
     viewer_dir: Path | None = None
     test_hooks: bool = False  # expose POST /api/debug/* (tests only)
+    #: extra Host names (besides loopback and the bound address) the service answers to
+    allowed_hosts: list[str] = field(default_factory=list)
+    #: extra browser origins (besides the service's own) allowed to open /ws or change state
+    allowed_origins: list[str] = field(default_factory=list)
     demo_steps: int = int(os.environ.get("CFSR_DEMO_STEPS", "6000"))
 
     def __post_init__(self) -> None:

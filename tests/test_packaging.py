@@ -115,8 +115,6 @@ def test_base_install_is_the_library_and_offline_cli(base_install, tmp_path):
 
 
 def test_live_install_serves_viewer_ws_and_mjpeg(live_install, tmp_path):
-    from websockets.sync.client import connect
-
     from service.hub import decode_ws_message
 
     bindir = live_install
@@ -132,7 +130,7 @@ def test_live_install_serves_viewer_ws_and_mjpeg(live_install, tmp_path):
         assert page.status_code == 200 and "<title>CFSR live viewer</title>" in page.text
         assert httpx.get(s.url + "/app.js", timeout=30).status_code == 200
         # binary frames over the WebSocket
-        with connect(s.ws_url(), max_size=None, open_timeout=30) as ws:
+        with s.ws_connect() as ws:
             frames = []
             end = time.monotonic() + 120
             while len(frames) < 2 and time.monotonic() < end:

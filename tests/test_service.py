@@ -69,9 +69,8 @@ def test_websocket_frames_change(server):
 
 
 def test_slow_client_does_not_slow_others(server):
-    from websockets.sync.client import connect
 
-    with connect(server.ws_url(), max_size=None, max_queue=1) as slow:
+    with server.ws_connect(max_queue=1) as slow:
         slow.send(json.dumps({"max_fps": 1}))
         fast = ws_frames(server, 30, timeout=60)
         assert len(fast) == 30
@@ -288,14 +287,38 @@ def test_token_is_enforced(data_dir):
         assert httpx.get(s.url + "/api/status", params={"token": "wrong"}).status_code == 401
         assert httpx.get(s.url + "/metrics").status_code == 401
         assert s.get("/api/status").status_code == 200
-        assert httpx.get(s.url + "/api/status", params={"token": "s3cret"}).status_code == 200
+        assert httpx.get(s.url + "/api/status",
+                         headers={"X-CFSR-Token": "s3cret"}).status_code == 200
+        # a token in the URL is refused: URLs end up in logs
+        assert httpx.get(s.url + "/api/status", params={"token": "s3cret"}).status_code == 401
         from websockets.exceptions import InvalidStatus, WebSocketException
         from websockets.sync.client import connect
 
-        with pytest.raises((InvalidStatus, WebSocketException, OSError)):
-            with connect(f"ws://127.0.0.1:{s.port}/ws", open_timeout=10) as ws:
-                ws.recv(timeout=10)
+        for url in (f"ws://127.0.0.1:{s.port}/ws", f"ws://127.0.0.1:{s.port}/ws?token=s3cret"):
+            with pytest.raises((InvalidStatus, WebSocketException, OSError)):
+                with connect(url, open_timeout=10) as ws:
+                    ws.recv(timeout=10)
         assert ws_frames(s, 1)
+
+        # the viewer's session: the token shown once buys an HttpOnly, SameSite=Strict cookie
+        with httpx.Client(base_url=s.url) as c:
+            assert c.get("/api/session").json() == {"token_required": True,
+                                                     "authenticated": False}
+            assert c.post("/api/session", json={"token": "wrong"}).status_code == 401
+            r = c.post("/api/session", json={"token": "s3cret"})
+            assert r.status_code == 200 and r.json()["authenticated"]
+            cookie = r.headers["set-cookie"].lower()
+            assert "httponly" in cookie and "samesite=strict" in cookie and "s3cret" not in cookie
+            assert c.get("/api/status").status_code == 200
+            session = c.cookies.get("cfsr_session")
+            with connect(s.ws_url(), open_timeout=10,
+                         additional_headers={"Cookie": f"cfsr_session={session}"}) as ws:
+                assert isinstance(ws.recv(timeout=30), bytes)
+            forged = session.split(".")[0] + "." + "0" * 64
+            assert httpx.get(s.url + "/api/status",
+                             cookies={"cfsr_session": forged}).status_code == 401
+        # the token is never printed
+        assert "s3cret" not in s.output()
 
 
 def test_non_loopback_bind_needs_token():

@@ -170,3 +170,34 @@ def test_viewer_in_chromium(browser, server, tmp_path):
     page.screenshot(path=str(shots / "viewer-heat-mask.png"), full_page=True)
     assert not errors, errors
     page.close()
+
+
+def test_viewer_asks_for_the_token_once(browser, live_install, tmp_path):
+    """With a token, the page asks for it, trades it for a session cookie and streams; the token
+    is in no URL the page opens and in nothing the server prints."""
+    dat = write_pattern(tmp_path / "data" / "pattern.dat", 3000)
+    token = "tok-" + os.urandom(6).hex()
+    with LiveServer(["--replay", str(dat), "--data-dir", str(tmp_path / "data"),
+                     "--token", token], token=token,
+                    command=[str(live_install / "cfsr"), "serve"], cwd=tmp_path,
+                    env=clean_env(live_install)) as s:
+        page = browser.new_page()
+        urls: list[str] = []
+        page.on("request", lambda r: urls.append(r.url))
+        page.on("websocket", lambda w: urls.append(w.url))
+        page.goto(s.url + "/")
+        page.wait_for_selector("#login:not(.hidden)")
+        page.fill("#login-token", "wrong")
+        page.click("#login-form button")
+        _wait(page, "() => document.getElementById('login-msg').textContent === 'wrong token'")
+        page.fill("#login-token", token)
+        page.click("#login-form button")
+        _wait(page, "() => window.cfsrViewer.frames >= 2")
+        _wait(page, "() => window.cfsrViewer.statusUpdates >= 1")
+        assert page.inner_text("#conn") == "live"
+        cookies = page.context.cookies()
+        assert [c["httpOnly"] for c in cookies if c["name"] == "cfsr_session"] == [True]
+        page.close()
+        out = s.output()
+    assert urls and not any(token in u for u in urls)
+    assert token not in out

@@ -46,6 +46,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--token", default=os.environ.get("CFSR_TOKEN"),
                    help="access token the API requires (default $CFSR_TOKEN; prefer the "
                    "variable: a flag is visible to other users in the process list)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="also answer to this Host name (repeatable; default: loopback names "
+                   "and the bound address only, which defeats DNS rebinding)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                   help="also accept WebSocket and state-changing requests from this browser "
+                   "origin, e.g. http://myhost:3000 (repeatable; default: the service's own)")
     p.add_argument("--data-dir", type=Path, default=None,
                    help="folder of recordings offered in the viewer; recordings are written to "
                    "DATA_DIR/recordings (default $CFSR_DATA_DIR or ~/.local/share/cfsr)")
@@ -90,6 +96,8 @@ def build_settings(args: argparse.Namespace):
         max_fps=args.max_fps,
         ring_seconds=args.ring_seconds,
         test_hooks=args.test_hooks,
+        allowed_hosts=list(args.allow_host),
+        allowed_origins=list(args.allow_origin),
     )
 
 
@@ -156,7 +164,8 @@ def _token_note(token: str | None) -> str:
     if not token:
         return ""
     fp = hashlib.sha256(token.encode()).hexdigest()[:8]
-    return f"; access token required (sha256 {fp}..., from --token or $CFSR_TOKEN)"
+    return (f"; access token required (sha256 {fp}..., from --token or $CFSR_TOKEN): "
+            "the viewer asks for it once")
 
 
 def run(args: argparse.Namespace) -> int:

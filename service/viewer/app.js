@@ -3,8 +3,8 @@
 "use strict";
 
 (function () {
-  const params = new URLSearchParams(location.search);
-  const TOKEN = params.get("token") || "";
+  // The access token (when the service has one) is traded once for an HttpOnly session
+  // cookie (POST /api/session): it never goes into a URL, where servers log it.
   const $ = (id) => document.getElementById(id);
 
   // ---- state shared with tests (window.cfsrViewer) -------------------------------------------
@@ -18,10 +18,9 @@
   // ---- REST helpers ----------------------------------------------------------------------------
   async function api(path, opts = {}) {
     const headers = Object.assign({}, opts.headers || {});
-    if (TOKEN) headers["Authorization"] = "Bearer " + TOKEN;
     if (opts.body !== undefined) headers["Content-Type"] = "application/json";
     const res = await fetch(path, {
-      method: opts.method || "GET", headers,
+      method: opts.method || "GET", headers, credentials: "same-origin",
       body: opts.body !== undefined ? JSON.stringify(opts.body) : undefined,
     });
     let data = null;
@@ -159,7 +158,7 @@
   let backoff = 250;
   function connect() {
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    const url = proto + "//" + location.host + "/ws" + (TOKEN ? "?token=" + encodeURIComponent(TOKEN) : "");
+    const url = proto + "//" + location.host + "/ws";
     const ws = new WebSocket(url);
     ws.binaryType = "arraybuffer";
     ws.onopen = () => { backoff = 250; state.connected = true; setConn(true); };
@@ -370,7 +369,40 @@
   }
 
   // ---- start -------------------------------------------------------------------------------------------------
+  // ---- session: ask for the token once when the service needs one -----------------------------
+  async function login(token) {
+    return api("/api/session", { method: "POST", body: { token } });
+  }
+  function askToken(error) {
+    return new Promise((resolve) => {
+      const box = $("login");
+      box.classList.remove("hidden");
+      msg($("login-msg"), error || "", !!error);
+      $("login-token").focus();
+      $("login-form").onsubmit = (ev) => {
+        ev.preventDefault();
+        box.classList.add("hidden");
+        resolve($("login-token").value);
+      };
+    });
+  }
+  async function ensureSession() {
+    let s = await api("/api/session");
+    // a token in the fragment (#token=...) is never sent to the server; use it once, then drop it
+    const fromHash = new URLSearchParams(location.hash.slice(1)).get("token");
+    if (fromHash) history.replaceState(null, "", location.pathname + location.search);
+    let error = null;
+    let candidate = fromHash;
+    while (s.token_required && !s.authenticated) {
+      const token = candidate || await askToken(error);
+      candidate = null;
+      try { s = await login(token); } catch (e) { error = "wrong token"; }
+    }
+    $("login-token").value = "";
+  }
+
   (async function init() {
+    await ensureSession();
     connect();
     try { await loadMethods(); await loadConfig(); await loadSources(); }
     catch (e) { msg($("config-msg"), e.message, true); }

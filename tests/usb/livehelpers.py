@@ -123,10 +123,15 @@ class LiveServer:
         raise AssertionError(f"timed out waiting for {what}; last status: {last}")
 
     def ws_url(self, query: str = "") -> str:
-        q = [query] if query else []
-        if self.token:
-            q.append(f"token={self.token}")
-        return f"ws://127.0.0.1:{self.port}/ws" + ("?" + "&".join(q) if q else "")
+        return f"ws://127.0.0.1:{self.port}/ws" + ("?" + query if query else "")
+
+    def ws_connect(self, query: str = "", **kw):
+        """A websockets sync client, with the token in a header (never in the URL)."""
+        from websockets.sync.client import connect
+
+        kw.setdefault("max_size", None)
+        kw.setdefault("open_timeout", 30)
+        return connect(self.ws_url(query), additional_headers=self.headers(), **kw)
 
     def stop(self) -> None:
         p = self.proc
@@ -151,13 +156,11 @@ class LiveServer:
 def ws_frames(server: LiveServer, n: int, *, timeout: float = 60.0, method: str | None = None,
               query: str = ""):
     """Receive ``n`` decoded frames (optionally only those of ``method``) over the WebSocket."""
-    from websockets.sync.client import connect
-
     from service.hub import decode_ws_message
 
     out = []
     end = time.monotonic() + timeout
-    with connect(server.ws_url(query), max_size=None, open_timeout=30) as ws:
+    with server.ws_connect(query) as ws:
         while len(out) < n:
             left = end - time.monotonic()
             if left <= 0:
