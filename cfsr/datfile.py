@@ -2,14 +2,21 @@
 
 A ``.dat`` file has no header: packed frames back to back, LSB-first bits, rows stored upside
 down. Files are memory-mapped, so opening a 10 GB recording costs nothing and frames are
-unpacked only when asked for. Our writers always add ``NAME.dat.json`` beside the data.
+unpacked only when asked for; a reader that must survive the file shrinking under it (the
+replay device) reads through :class:`DatReader` instead. Our writers always add
+``NAME.dat.json`` beside the data, and every sidecar value is checked on read
+(:func:`validate_sidecar`) against bounds a real camera can reach.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import os
+import stat
 import warnings
+import weakref
 from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,14 +36,48 @@ __all__ = [
     "read_spikes",
     "sidecar_path",
     "read_sidecar",
+    "validate_sidecar",
+    "file_kind",
+    "DatReader",
+    "FileShrankError",
     "DatWriter",
+    "write_json_atomic",
+    "MAX_SIDE_PX",
+    "MAX_FRAME_PIXELS",
+    "MAX_RATE_HZ",
+    "MAX_GAIN",
+    "MAX_FRAMES",
+    "MAX_SIDECAR_BYTES",
 ]
 
 SIDECAR_VERSION = 1
 
+# Bounds on sidecar values (and on the geometry and rate read_dat accepts): what a real spike
+# camera can reach, not what JSON can hold. A value outside them is a damaged or hostile
+# sidecar and is refused before anything (ring buffers, frame slots, durations) is sized by it.
+#: Width and height in pixels, 1..65,535: the live WebSocket frame header stores the width in
+#: 16 bits, so nothing wider can be shown. Head columns count towards the stored width.
+MAX_SIDE_PX = 65_535
+#: Pixels per stored frame (2**24 = 4096 x 4096, 2 MiB packed). Spike sensors built so far are
+#: at most about 1000 x 1000; beyond this one 256-frame block would no longer fit in memory.
+MAX_FRAME_PIXELS = 1 << 24
+#: Steps per second, in (0, 1e7]: the sensor samples at 40,000; 10 MHz is beyond any made.
+MAX_RATE_HZ = 1e7
+#: Display gain in spikes/step (the firing rate shown as white), in (0, 1]: no pixel can fire
+#: more than once per step.
+MAX_GAIN = 1.0
+#: Frames a sidecar may claim: 2**40 steps (318 days at 40 kHz).
+MAX_FRAMES = 1 << 40
+#: A sidecar is a few hundred bytes of JSON; a larger one is refused, not read into memory.
+MAX_SIDECAR_BYTES = 1 << 20
+
 
 class SpikeFileError(ValueError):
     """A spike file or its sidecar cannot be used as asked; the message names file and problem."""
+
+
+class FileShrankError(SpikeFileError):
+    """A ``.dat`` file no longer holds frames it held when it was opened (truncated/rewritten)."""
 
 
 def sidecar_path(path: str | os.PathLike) -> Path:
@@ -45,18 +86,245 @@ def sidecar_path(path: str | os.PathLike) -> Path:
     return p.with_name(p.name + ".json")
 
 
-def read_sidecar(path: str | os.PathLike) -> dict[str, Any] | None:
-    """Read the JSON sidecar of ``path`` if it exists; raise SpikeFileError if it is unreadable."""
-    sp = sidecar_path(path)
-    if not sp.exists():
-        return None
+def file_kind(mode: int) -> str:
+    """What an ``st_mode`` is, in words ("regular file", "FIFO (named pipe)", ...)."""
+    for test, name in (
+        (stat.S_ISREG, "regular file"),
+        (stat.S_ISDIR, "directory"),
+        (stat.S_ISFIFO, "FIFO (named pipe)"),
+        (stat.S_ISSOCK, "socket"),
+        (stat.S_ISCHR, "character device"),
+        (stat.S_ISBLK, "block device"),
+    ):
+        if test(mode):
+            return name
+    return "special file"
+
+
+def _show(value: Any) -> str:
+    """A sidecar value as it was written in JSON, on one short line, for error messages."""
     try:
-        meta = json.loads(sp.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        s = json.dumps(value)
+    except (TypeError, ValueError):
+        s = repr(value)
+    return s if len(s) <= 40 else s[:37] + "..."
+
+
+def _as_int(value: Any) -> int | None:
+    """``value`` as an int if it is integral (JSON ``400`` or ``400.0``, a NumPy integer from
+    a writer), else None."""
+    if isinstance(value, bool | np.bool_):  # JSON true/false are not numbers
+        return None
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real) and math.isfinite(value) and float(value).is_integer():
+        return int(value)
+    return None
+
+
+def _as_number(value: Any) -> float | None:
+    """``value`` as a float if it is a finite real number (not a bool), else None."""
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        return None
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def validate_sidecar(meta: Mapping[str, Any], where: str | os.PathLike) -> dict[str, Any]:
+    """Check every sidecar value the library uses against what a real camera can reach.
+
+    Parameters
+    ----------
+    meta : mapping
+        The parsed sidecar.
+    where : path-like
+        The sidecar, named in error messages.
+
+    Returns
+    -------
+    dict
+        A copy with integral values as ``int`` and rates as ``float``. Keys the library does not
+        interpret (provenance, scene description, ...) pass through unchanged.
+
+    Raises
+    ------
+    SpikeFileError
+        One line naming ``where``, the key, the value and the allowed range. Bounds:
+        ``width``, ``height`` 1..:data:`MAX_SIDE_PX` pixels, ``head_cols`` >= 0 with the stored
+        row at most :data:`MAX_SIDE_PX` and the frame at most :data:`MAX_FRAME_PIXELS`;
+        ``flipud``/``fliplr`` booleans; ``frame_bytes`` equal to the geometry's; ``n_frames``
+        0..:data:`MAX_FRAMES`; ``rate_hz`` in (0, :data:`MAX_RATE_HZ`] steps/s; ``gain`` null or
+        in (0, :data:`MAX_GAIN`] spikes/step.
+    """
+    out = dict(meta)
+
+    def bad(key: str, expected: str, *, geometry: bool = False) -> SpikeFileError:
+        what = "wrong geometry" if geometry else "bad sidecar value"
+        return SpikeFileError(f"{where}: {what}: {key} = {_show(meta[key])}, expected {expected}")
+
+    for key, lo in (("width", 1), ("height", 1), ("head_cols", 0)):
+        if key in meta:
+            v = _as_int(meta[key])
+            if v is None or not lo <= v <= MAX_SIDE_PX:
+                raise bad(key, f"an integer in [{lo}, {MAX_SIDE_PX}] pixels", geometry=True)
+            out[key] = v
+    for key in ("flipud", "fliplr"):
+        if key in meta and not isinstance(meta[key], bool):
+            raise bad(key, "true or false", geometry=True)
+    default = Layout()
+    sw = out.get("width", default.width) + out.get("head_cols", default.head_cols)
+    h = out.get("height", default.height)
+    if sw > MAX_SIDE_PX or sw * h > MAX_FRAME_PIXELS:
+        raise SpikeFileError(
+            f"{where}: wrong geometry: stored frame {sw} x {h} pixels (width + head_cols x "
+            f"height), expected at most {MAX_SIDE_PX} pixels a row and {MAX_FRAME_PIXELS} a frame"
+        )
+    if "frame_bytes" in meta:
+        v = _as_int(meta["frame_bytes"])
+        if v is None or v * 8 != sw * h:
+            raise bad("frame_bytes", f"{sw} x {h} / 8 = {sw * h / 8:.12g} bytes (its geometry)",
+                      geometry=True)
+        out["frame_bytes"] = v
+    for key, hi in (("n_frames", MAX_FRAMES), ("dropped_tail_bytes", MAX_FRAME_PIXELS // 8)):
+        if key in meta:
+            v = _as_int(meta[key])
+            if v is None or not 0 <= v <= hi:
+                raise bad(key, f"an integer in [0, {hi}]")
+            out[key] = v
+    if "sidecar_version" in meta:
+        v = _as_int(meta["sidecar_version"])
+        if v is None or v < 1:
+            raise bad("sidecar_version", "an integer >= 1")
+    if "rate_hz" in meta:
+        v = _as_number(meta["rate_hz"])
+        if v is None or not 0 < v <= MAX_RATE_HZ:
+            raise bad("rate_hz", f"a number in (0, {MAX_RATE_HZ:.0f}] steps/s")
+        out["rate_hz"] = v
+    if meta.get("gain") is not None:
+        v = _as_number(meta["gain"])
+        if v is None or not 0 < v <= MAX_GAIN:
+            raise bad("gain", f"null or a number in (0, {MAX_GAIN:g}] spikes/step")
+        out["gain"] = v
+    return out
+
+
+def read_sidecar(path: str | os.PathLike) -> dict[str, Any] | None:
+    """Read and validate the JSON sidecar of ``path``; None if there is none.
+
+    The sidecar is opened without blocking and read only if it is a regular file of at most
+    :data:`MAX_SIDECAR_BYTES` (a FIFO named like a sidecar must not hang a folder scan). Every
+    value is checked by :func:`validate_sidecar`.
+
+    Raises
+    ------
+    SpikeFileError
+        Unreadable, not a regular file, too large, not a JSON object, or a value out of bounds.
+    """
+    sp = sidecar_path(path)
+    try:
+        fd = os.open(sp, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
         raise SpikeFileError(f"{sp}: unreadable sidecar ({exc})") from exc
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise SpikeFileError(
+                f"{sp}: sidecar is a {file_kind(st.st_mode)}, not a regular file"
+            )
+        if st.st_size > MAX_SIDECAR_BYTES:
+            raise SpikeFileError(
+                f"{sp}: sidecar is {st.st_size} bytes, more than the {MAX_SIDECAR_BYTES} "
+                "a sidecar may hold"
+            )
+        try:
+            raw = b""
+            while len(raw) <= MAX_SIDECAR_BYTES:  # a read may return less than asked
+                chunk = os.read(fd, MAX_SIDECAR_BYTES + 1 - len(raw))
+                if not chunk:
+                    break
+                raw += chunk
+            meta = json.loads(raw.decode("utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+            why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+            raise SpikeFileError(f"{sp}: unreadable sidecar ({why})") from exc
+    finally:
+        os.close(fd)
     if not isinstance(meta, dict):
         raise SpikeFileError(f"{sp}: sidecar must hold a JSON object, found {type(meta).__name__}")
-    return meta
+    return validate_sidecar(meta, sp)
+
+
+class DatReader:
+    """Bounds-checked reads of whole packed frames from a ``.dat`` file, without a memory map.
+
+    Touching a memory map past the end of a file that shrank after it was mapped kills the
+    process with SIGBUS; a reader that must survive the file being truncated or rewritten
+    under it (the replay device of a long-running service) reads through this instead. Each
+    :meth:`read` is one ``preadv`` into a fresh array: a short read means the file no longer
+    holds those frames and raises :class:`FileShrankError`.
+
+    Parameters
+    ----------
+    path : path-like
+        The ``.dat`` file (must be a regular file; it is opened without blocking).
+    frame_bytes : int
+        Bytes per packed frame.
+    offset : int
+        Byte offset of frame 0 in the file.
+    """
+
+    def __init__(self, path: str | os.PathLike, frame_bytes: int, *, offset: int = 0) -> None:
+        self.path = Path(path)
+        self.frame_bytes = int(frame_bytes)
+        self.offset = int(offset)
+        fd = os.open(self.path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            os.close(fd)
+            raise SpikeFileError(f"{self.path}: is a {file_kind(st.st_mode)}, not a regular file")
+        self._fd = fd
+        # the descriptor is released even if close() is never called
+        self._finalizer = weakref.finalize(self, os.close, fd)
+
+    @property
+    def closed(self) -> bool:
+        return not self._finalizer.alive
+
+    def close(self) -> None:
+        self._finalizer()
+
+    def size(self) -> int:
+        """Current size of the file in bytes."""
+        return os.fstat(self._fd).st_size
+
+    def read(self, start: int, n: int) -> np.ndarray:
+        """Frames ``start..start+n-1`` as a new ``(n, frame_bytes)`` uint8 array.
+
+        Raises
+        ------
+        FileShrankError
+            The file ends before the last requested byte; the message names the file, its
+            size now and the bytes that were needed.
+        """
+        fb = self.frame_bytes
+        out = np.empty((n, fb), np.uint8)
+        want = n * fb
+        pos = self.offset + start * fb
+        view = memoryview(out.reshape(-1))
+        got = 0
+        while got < want:
+            k = os.preadv(self._fd, [view[got:]], pos + got)
+            if k == 0:
+                break  # end of file
+            got += k
+        if got < want:
+            raise FileShrankError(
+                f"{self.path}: the file shrank while being read (it is now {self.size()} bytes; "
+                f"frames {start}..{start + n - 1} need bytes {pos}..{pos + want - 1})"
+            )
+        return out
 
 
 def _software_version() -> str:
@@ -143,10 +411,19 @@ def read_dat(
         sidecar. The message names the file and the problem.
     """
     p = Path(path)
-    if not p.exists():
-        raise SpikeFileError(f"{p}: no such file")
-    if p.is_dir():
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        raise SpikeFileError(f"{p}: no such file") from None
+    except OSError as exc:
+        raise SpikeFileError(f"{p}: cannot read ({exc})") from exc
+    if stat.S_ISDIR(st.st_mode):
         raise SpikeFileError(f"{p}: is a directory, expected a .dat file")
+    if not stat.S_ISREG(st.st_mode):
+        # a FIFO or device reports size 0 and would block or never end: say what it is
+        raise SpikeFileError(
+            f"{p}: is a {file_kind(st.st_mode)}, not a regular file; a .dat recording is a file"
+        )
     meta = read_sidecar(p) or {}
     try:
         layout = _layout_from(
@@ -154,7 +431,23 @@ def read_dat(
         )
     except (TypeError, ValueError) as exc:
         raise SpikeFileError(f"{p}: wrong geometry ({exc})") from exc
-    size = p.stat().st_size
+    if (
+        layout.width > MAX_SIDE_PX
+        or layout.height > MAX_SIDE_PX
+        or layout.stored_width > MAX_SIDE_PX
+        or layout.stored_width * layout.height > MAX_FRAME_PIXELS
+    ):
+        raise SpikeFileError(
+            f"{p}: wrong geometry: stored frame {layout.stored_width} x {layout.height} pixels, "
+            f"expected at most {MAX_SIDE_PX} pixels a side and {MAX_FRAME_PIXELS} a frame"
+        )
+    if rate_hz is not None and not (
+        _as_number(rate_hz) is not None and 0 < rate_hz <= MAX_RATE_HZ
+    ):
+        raise SpikeFileError(
+            f"{p}: rate_hz = {rate_hz!r}, expected a number in (0, {MAX_RATE_HZ:.0f}] steps/s"
+        )
+    size = st.st_size
     if size == 0:
         raise SpikeFileError(f"{p}: empty file (0 bytes), no spike frames")
     fb = layout.frame_bytes
@@ -170,7 +463,7 @@ def read_dat(
             raise SpikeFileError(msg + hint)
         warnings.warn(msg + "; dropping the partial tail", stacklevel=2)
         meta = {**meta, "dropped_tail_bytes": tail}
-    if "n_frames" in meta and int(meta["n_frames"]) != n and not tail:
+    if "n_frames" in meta and meta["n_frames"] != n and not tail:
         warnings.warn(
             f"{p}: sidecar says {meta['n_frames']} frames but the file holds {n}", stacklevel=2
         )
@@ -184,6 +477,12 @@ class DatWriter:
 
     Used by ``write_dat``, the simulator and live recording, so every file we write gets the
     same sidecar. Use as a context manager.
+
+    The file only ever holds whole frames: when a write fails part-way (``ENOSPC`` on a full
+    disk, ``EFBIG``, an I/O error) the partial frame is cut off before the error is raised, and
+    :attr:`n_frames` counts the frames that are really on disk. The sidecar is written to a
+    temporary file and renamed over ``NAME.dat.json``, so a reader never sees half a sidecar
+    (a full disk used to leave a 0-byte one that made the recording unreadable).
     """
 
     def __init__(
@@ -199,15 +498,38 @@ class DatWriter:
         self.rate_hz = float(rate_hz)
         self.meta = dict(meta or {})
         self.n_frames = 0
-        self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        # never write a sidecar that read_sidecar would refuse; fail before the file exists
+        validate_sidecar(_sidecar_dict(layout, 0, self.rate_hz, self.meta), sidecar_path(path))
+        # unbuffered: each write reports how many bytes reached the file, so a failure can be
+        # trimmed back to the last whole frame
+        self._fh = open(self.path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+
+    @property
+    def bytes_written(self) -> int:
+        return self.n_frames * self.layout.frame_bytes
 
     def write_packed(self, packed: np.ndarray) -> None:
+        """Append ``(n, frame_bytes)`` stored frames; on ``OSError`` the file is trimmed to
+        the frames fully written (counted in :attr:`n_frames`) and the error re-raised."""
         packed = np.ascontiguousarray(packed, dtype=np.uint8)
-        if packed.ndim != 2 or packed.shape[1] != self.layout.frame_bytes:
-            raise ValueError(
-                f"packed block must be (n, {self.layout.frame_bytes}), got {packed.shape}"
-            )
-        self._fh.write(packed.tobytes())
+        fb = self.layout.frame_bytes
+        if packed.ndim != 2 or packed.shape[1] != fb:
+            raise ValueError(f"packed block must be (n, {fb}), got {packed.shape}")
+        view = memoryview(packed).cast("B")
+        done = 0
+        try:
+            while done < len(view):
+                n = self._fh.write(view[done:])
+                if not n:
+                    raise OSError(28, "No space left on device (short write)", str(self.path))
+                done += n
+        except OSError:
+            self.n_frames += done // fb
+            try:
+                os.ftruncate(self._fh.fileno(), self.bytes_written)
+            except OSError:
+                pass  # the write error is the one to report
+            raise
         self.n_frames += packed.shape[0]
 
     def write_frames(self, frames: np.ndarray) -> None:
@@ -226,17 +548,31 @@ class DatWriter:
         self.write_packed(pack_frames(frames, flipud=lay.flipud, fliplr=lay.fliplr))
 
     def close(self) -> None:
+        """Close the file and write the sidecar atomically (temp file + rename)."""
         if self._fh.closed:
             return
         self._fh.close()
         side = _sidecar_dict(self.layout, self.n_frames, self.rate_hz, self.meta)
-        sidecar_path(self.path).write_text(json.dumps(side, indent=2, default=_json_default))
+        write_json_atomic(sidecar_path(self.path), side)
 
     def __enter__(self) -> DatWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
+    """Write ``obj`` as JSON to ``path`` through a temporary file in the same folder and a
+    rename: ``path`` is either its old content or the whole new one, never a partial file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _json_default(o: Any) -> Any:

@@ -1,7 +1,11 @@
 """The replay device: a ``.dat`` recording played back as if it were the camera.
 
-Frames come straight from the memory map (seek is O(1): frame ``n`` is at byte
-``n * frame_bytes``). Two modes:
+Frames of a file are read block by block with bounds-checked ``preadv`` calls
+(:class:`cfsr.datfile.DatReader`), not through the memory map: the file may be truncated or
+rewritten while a long-running service replays it, and touching a map past the file's new end
+kills the whole process with SIGBUS. A read that comes up short ends the replay instead: the
+source goes to the ``error`` state with ``last_error`` naming the file and what happened.
+Seek stays O(1) (frame ``n`` is at byte ``n * frame_bytes``). Two modes:
 
 ``paced``
     Frames are released on the sensor's schedule, 25 us per step divided by ``speed``,
@@ -15,16 +19,23 @@ Frames come straight from the memory map (seek is O(1): frame ``n`` is at byte
 
 The block index is the device's step clock: it keeps counting across loops (the content
 wraps, the clock does not), jumps when frames are skipped, and a seek is flagged
-``DISCONTINUITY``. The file position is reported by ``ReplayControl.state()``.
+``DISCONTINUITY``. The file position is reported by ``ReplayControl.state()``. A looping
+range shorter than one block is repeated inside the block (a 1-frame file comes as blocks of
+``block_frames`` copies), so tiny files cost one wake-up per block like any other.
 """
 
 from __future__ import annotations
 
+import logging
+import mmap
 import os
 import threading
 import time
 from typing import Any
 
+import numpy as np
+
+from cfsr.datfile import DatReader, FileShrankError
 from cfsr.spikes import SpikeRecording
 from driver.source import (
     Block,
@@ -40,6 +51,20 @@ __all__ = ["ReplayDevice", "MAX_SPEED", "MIN_SPEED"]
 
 MIN_SPEED = 1e-4
 MAX_SPEED = 1000.0
+
+log = logging.getLogger("cfsr.replay")
+
+
+def _file_region(rec: SpikeRecording) -> tuple[str, int] | None:
+    """``(file, byte offset of frame 0)`` when ``rec`` maps a file, else None (in memory).
+
+    Only a map made by ``np.memmap`` itself qualifies (its ``base`` is the ``mmap``): a slice
+    of one inherits ``offset`` from its parent, which would point at the wrong frames.
+    """
+    pf = rec.packed_frames
+    if isinstance(pf, np.memmap) and isinstance(pf.base, mmap.mmap) and pf.filename:
+        return pf.filename, int(pf.offset)
+    return None
 
 
 class _ReplayControl(ReplayControl):
@@ -79,7 +104,8 @@ class ReplayDevice(Source):
     Parameters
     ----------
     recording : SpikeRecording or path-like
-        What to play (``.dat`` files are memory-mapped via :func:`cfsr.read_dat`).
+        What to play (``.dat`` files are opened with :func:`cfsr.read_dat`, which checks them
+        and their sidecar; frames are then read from the file, bounds-checked, per block).
     speed : float
         Playback speed relative to real time (1.0 = 40,000 steps/s).
     loop : bool
@@ -157,19 +183,34 @@ class ReplayDevice(Source):
         self._clock_ref = 0
         self._ended = False
         self._loops = 0
+        self._failed = False  # the file lost frames under us: ended for good, see last_error
         self.frames_delivered = 0
         self.frames_skipped = 0  # replay_behind
+        region = _file_region(recording)
+        self._region = region
+        self._reader: DatReader | None = None
+        if region is not None:
+            self._reader = DatReader(region[0], recording.layout.frame_bytes, offset=region[1])
         self._facilities = {ReplayControl: _ReplayControl(self)}
 
     # -- lifecycle ------------------------------------------------------------------------
     def open(self) -> None:
         with self._cond:
+            if self._region is not None and (self._reader is None or self._reader.closed):
+                self._reader = DatReader(
+                    self._region[0], self.rec.layout.frame_bytes, offset=self._region[1]
+                )
             self._reset_pacing()
-            self.state = SourceState.STREAMING if self._playing else SourceState.PAUSED
+            if self._failed:
+                self.state = SourceState.ERROR
+            else:
+                self.state = SourceState.STREAMING if self._playing else SourceState.PAUSED
 
     def close(self) -> None:
         with self._cond:
             self.state = SourceState.CLOSED
+            if self._reader is not None:
+                self._reader.close()
             self._cond.notify_all()
 
     # -- controls (called from other threads) ------------------------------------------------
@@ -182,27 +223,38 @@ class ReplayDevice(Source):
             if "playing" in kw:
                 self._playing = kw["playing"]
                 if self._playing and self._ended:
-                    self._ended = False
-                    self._pos = self.start
-                    self._discontinuity = True
+                    self._restart()
             if "speed" in kw:
                 self._speed = kw["speed"]
             if "loop" in kw:
                 self._loop = kw["loop"]
+                if self._loop and self._ended and self._playing:
+                    # looping an ended replay plays it again, as if it had looped all along
+                    self._restart()
             if "seek" in kw:
                 f = kw["seek"]
                 if not self.start <= f < self.end:
                     raise ValueError(f"seek to frame {f} outside [{self.start}, {self.end})")
                 self._pos = f
                 self._discontinuity = True
-                self._ended = False
-            if "step" in kw and self._pos < self.end:
+                self._ended = self._failed
+            if "step" in kw and self._pos < self.end and not self._failed:
                 self._pending_steps += kw["step"]
                 self._ended = False
             self._reset_pacing()
-            if self.state not in (SourceState.CLOSED,):
+            if self._failed:
+                pass  # a file that lost frames stays in ERROR until the source is reopened
+            elif self.state not in (SourceState.CLOSED,):
                 self.state = SourceState.STREAMING if self._playing else SourceState.PAUSED
             self._cond.notify_all()
+
+    def _restart(self) -> None:
+        """Play again from ``start`` after the end (not after a file failure)."""
+        if self._failed:
+            return
+        self._ended = False
+        self._pos = self.start
+        self._discontinuity = True
 
     def _state(self) -> dict[str, Any]:
         with self._cond:
@@ -235,19 +287,20 @@ class ReplayDevice(Source):
                 if self.state == SourceState.CLOSED:
                     return None
                 if self._ended and self._pending_steps == 0:
-                    raise SourceEnded(f"{self.info.name}: end of recording")
+                    raise SourceEnded(self.last_error or f"{self.info.name}: end of recording")
                 now = self._now()
                 remaining = deadline - now
                 if self._pending_steps > 0:
                     n = min(self._pending_steps, self.block_frames, self.end - self._pos)
+                    blk = self._emit(n, 0)
                     self._pending_steps -= n
-                    return self._emit(n, 0)
+                    return blk
                 if not self._playing:
                     if remaining <= 0:
                         return None
                     self._cond.wait(remaining)
                     continue
-                n = min(self.block_frames, self.end - self._pos)
+                n = self._next_len()
                 if self.mode == "fast":
                     return self._emit(n, 0)
                 rate = self.info.rate_hz * self._speed
@@ -263,8 +316,21 @@ class ReplayDevice(Source):
                     # the reader cannot keep up: jump to the schedule, as a camera FIFO would
                     skipped = int(behind * rate)
                     self._advance(skipped)
-                    n = min(self.block_frames, self.end - self._pos)
+                    n = self._next_len()
                 return self._emit(n, skipped)
+
+    def _next_len(self) -> int:
+        """Frames in the next block: ``block_frames``, or fewer up to the end of the range.
+
+        A looping range shorter than a block, started at its beginning, is repeated whole as
+        many times as fit: a 1-frame file then comes in blocks of ``block_frames`` copies (one
+        wake-up per 6.4 ms at 256 frames) instead of a 1-frame block every 25 us, which spun
+        the acquisition thread and flooded the ring.
+        """
+        left = self.end - self._pos
+        if self._loop and left < self.block_frames and self._pos == self.start:
+            return left * (self.block_frames // left)
+        return min(self.block_frames, left)
 
     def _advance(self, k: int) -> None:
         """Skip ``k`` frames of content (the clock jumps too)."""
@@ -278,22 +344,45 @@ class ReplayDevice(Source):
         else:
             self._pos = min(self.end - 1, self.start + off)
 
+    def _read(self, a: int, n: int) -> np.ndarray:
+        """Packed file frames ``a..a+n-1``: bounds-checked from the file, or a view in memory."""
+        if self._reader is None:
+            return self.rec.packed(a, a + n)
+        try:
+            return self._reader.read(a, n)
+        except (FileShrankError, OSError) as exc:
+            # the file was truncated or rewritten (or the disk failed) under the replay: end
+            # it here, for good, and say why; the service and its other parts stay up
+            self._failed = True
+            self._ended = True
+            self._pending_steps = 0
+            self.state = SourceState.ERROR
+            self.last_error = f"replay ended: {exc}"
+            log.warning("%s", self.last_error)
+            raise SourceEnded(self.last_error) from exc
+
     def _emit(self, n: int, skipped: int) -> Block:
+        """Deliver ``n`` frames from the current position (``n`` may hold several whole passes
+        over a short looping range, see :meth:`_next_len`)."""
+        left = self.end - self._pos
+        passes, k = (n // left, left) if n > left else (1, n)
+        data = self._read(self._pos, k)  # first: a failed read changes no counter
+        if passes > 1:
+            data = np.tile(data, (passes, 1))
         flags = BlockFlags.NONE
         if self._discontinuity:
             flags |= BlockFlags.DISCONTINUITY
             self._discontinuity = False
         if skipped:
             flags |= BlockFlags.LOSS
-        data = self.rec.packed(self._pos, self._pos + n)
         blk = Block(index=self._clock, data=data, flags=flags, lost_before=skipped)
         self._clock += n
-        self._pos += n
+        self._pos += k
         self.frames_delivered += n
         if self._pos >= self.end:
             if self._loop:
                 self._pos = self.start
-                self._loops += 1
+                self._loops += passes
             else:
                 self._pos = self.end
                 self._ended = True

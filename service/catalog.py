@@ -3,12 +3,18 @@
 Recordings come only from the configured data folder: the listing is made by scanning that
 folder (symlinks that leave it are ignored), and a client selects an entry by its *id* from the
 listing. No path sent by a client is ever opened.
+
+A scan never fails because of one bad file: a recording whose sidecar or size is bad, or a
+FIFO/socket/device named like a recording, is listed with a ``note`` saying what is wrong (and
+logged once), cannot be selected, and is never opened for reading (only ``stat``; sidecars are
+opened without blocking and read only when they are regular files).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +45,9 @@ class CatalogEntry:
     height: int | None = None
     rate_hz: float | None = None
     note: str | None = None
+    #: False when the entry cannot be opened (bad sidecar, bad size, not a regular file);
+    #: ``note`` says why.
+    usable: bool = True
 
     def public(self) -> dict[str, Any]:
         d = {
@@ -68,6 +77,7 @@ class SourceCatalog:
         self.settings = settings
         self.data_dir = settings.data_dir.resolve()
         self.extra: dict[str, CatalogEntry] = {}  # sources named on the command line
+        self._reported: set[tuple[str, str]] = set()  # (path, problem) already logged
 
     def add_cli_source(self, spec: SourceSpec) -> None:
         if spec.kind == "replay" and spec.path is not None:
@@ -76,27 +86,52 @@ class SourceCatalog:
                 self.extra[e.id] = e
 
     # -- listing ----------------------------------------------------------------------------
+    def _unusable(self, e: CatalogEntry, problem: str) -> CatalogEntry:
+        """Mark ``e`` as not openable because of ``problem``; log each problem once.
+
+        The log line keeps full paths; the note, which clients see, names files relative to
+        the recording's folder (the server's directory layout is not theirs to read).
+        """
+        e.usable = False
+        folder = f"{e.path.parent}{os.sep}" if e.path is not None else None
+        e.note = "cannot be opened: " + (problem.replace(folder, "") if folder else problem)
+        key = (str(e.path), problem)
+        if key not in self._reported:
+            self._reported.add(key)
+            log.warning("data folder: skipping %s: %s", e.path, problem)
+        return e
+
     def _describe_file(self, path: Path, id_: str, kind: str) -> CatalogEntry | None:
+        """Describe ``path`` from ``stat`` and its sidecar; None if it vanished meanwhile."""
+        from cfsr.datfile import SpikeFileError, file_kind, read_sidecar
+        from cfsr.layout import STEP_RATE_HZ, Layout
+
         try:
-            size = path.stat().st_size
+            st = path.stat()
         except OSError:
             return None
-        e = CatalogEntry(id=id_, kind=kind, name=path.name, path=path, bytes=size)
+        e = CatalogEntry(id=id_, kind=kind, name=path.name, path=path)
+        if not stat.S_ISREG(st.st_mode):
+            # a FIFO would block whoever opened it; say what it is instead of "empty file"
+            return self._unusable(e, f"a {file_kind(st.st_mode)}, not a regular file")
+        size = e.bytes = st.st_size
         try:
-            from cfsr.datfile import read_sidecar
-
             meta = read_sidecar(path) or {}
-        except ValueError:
-            meta = {}
-        w, h = int(meta.get("width", 400)), int(meta.get("height", 250))
-        head = int(meta.get("head_cols", 0))
-        fb = (w + head) * h // 8
-        e.width, e.height = w, h
-        e.rate_hz = float(meta.get("rate_hz", 40000))
-        if path.suffix.lower() == ".dat" and fb:
-            e.frames = size // fb
-            if size % fb:
-                e.note = f"size is not a multiple of the {fb}-byte frame"
+            lay = Layout(**{k: meta[k] for k in ("width", "height", "head_cols") if k in meta})
+        except (SpikeFileError, TypeError, ValueError) as exc:
+            # the sidecar's own message names it, the key, the value and the allowed range
+            return self._unusable(e, str(exc))
+        e.width, e.height = lay.width, lay.height
+        e.rate_hz = float(meta.get("rate_hz", STEP_RATE_HZ))
+        if path.suffix.lower() == ".dat":
+            fb = lay.frame_bytes
+            e.frames, tail = divmod(size, fb)
+            if size == 0:
+                return self._unusable(e, "empty file (0 bytes)")
+            if tail:
+                return self._unusable(
+                    e, f"size {size} bytes is not a multiple of the {fb}-byte frame"
+                )
         return e
 
     def scan(self) -> dict[str, CatalogEntry]:
@@ -155,6 +190,8 @@ class SourceCatalog:
         if source_id not in entries:
             raise KeyError(source_id)
         e = entries[source_id]
+        if not e.usable:
+            raise ValueError(f"{e.name}: {e.note}")
         if e.kind == "demo":
             return SourceSpec(kind="demo")
         if e.kind in ("file", "replay"):

@@ -586,7 +586,9 @@ def simulate_to_dat(
     layout = Layout(width=w, height=h, head_cols=pad)
     gpath = gt_path(path) if gt_every else None
     meta = {
-        "gain": sensor.rate_scale,
+        # the display gain is a rate (spikes/step, at most 1): an ideal pixel at intensity 1.0
+        # fires at rate_scale, clipped to one spike per step like the sensor itself
+        "gain": min(sensor.rate_scale, 1.0),
         "source": "cfsr.simulate",
         "scene": sc.describe(),
         "seed": int(seed),
