@@ -185,6 +185,11 @@ class RecordStatus(BaseModel):
     elapsed_s: float = 0.0
     lost_frames: int = 0
     error: str | None = None
+    max_bytes: int | None = None
+    stop_reason: str | None = Field(
+        None, description="why it stopped: stopped, max_frames reached, size cap reached, "
+        "disk nearly full, error"
+    )
 
 
 class RecordRequest(BaseModel):
@@ -194,6 +199,11 @@ class RecordRequest(BaseModel):
         description="file name without folder (.dat added); default rec-<time>",
     )
     max_frames: int | None = Field(None, ge=1, description="stop by itself after this many")
+    max_bytes: int | None = Field(
+        None, ge=1, le=2**50,
+        description="size cap of the .dat in bytes (default and upper limit: the free space "
+        "less 64 MB); the recording stops cleanly there",
+    )
 
 
 class StatusModel(BaseModel):

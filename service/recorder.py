@@ -3,10 +3,17 @@
 The recorder reads every block it can; frames it could not get (the ring overran it, or the
 source reported loss) go into the sidecar's ``drop_map`` as ``[first_step, frames, kind]``
 and ``clean_capture`` is true only when nothing was lost.
+
+A recording never fills the disk: it is capped at ``max_bytes`` (default: the free space less
+:data:`RESERVE_BYTES`), refused before it starts when not even one block fits, and stopped
+cleanly when the free space falls under the reserve while it runs (other writers share the
+disk). Whatever stops it (``stop_reason``), the ``.dat`` holds whole frames only and its sidecar
+is written atomically (see :class:`cfsr.datfile.DatWriter`), so the recording opens.
 """
 
 from __future__ import annotations
 
+import shutil
 import threading
 import time
 from datetime import UTC, datetime
@@ -18,7 +25,16 @@ from cfsr.layout import Layout
 from driver.ring import SpikeRing
 from driver.source import BlockFlags
 
-__all__ = ["Recorder"]
+__all__ = ["Recorder", "RESERVE_BYTES", "free_bytes"]
+
+#: free space a recording always leaves on its disk (for the sidecar, logs, the system)
+RESERVE_BYTES = 64 * 1024 * 1024
+#: how often the free space is looked at while recording, s
+_SPACE_CHECK_S = 0.5
+
+
+def free_bytes(folder: Path) -> int:
+    return int(shutil.disk_usage(folder).free)
 
 
 class Recorder:
@@ -31,11 +47,27 @@ class Recorder:
         rate_hz: float,
         meta: dict[str, Any] | None = None,
         max_frames: int | None = None,
+        max_bytes: int | None = None,
     ) -> None:
         self.ring = ring
         self.path = Path(path)
         self.layout = layout
-        self.max_frames = max_frames
+        fb = layout.frame_bytes
+        room = free_bytes(self.path.parent) - RESERVE_BYTES
+        if max_bytes is not None and max_bytes < fb:
+            raise ValueError(f"max_bytes {max_bytes} is less than one frame ({fb} bytes)")
+        self.max_bytes = min(room, max_bytes) if max_bytes is not None else room
+        if self.max_bytes < ring.slot_frames * fb:
+            raise OSError(
+                f"not enough free space to record in {self.path.parent}: "
+                f"{max(0, room + RESERVE_BYTES) / 1e6:.0f} MB free, a recording keeps "
+                f"{RESERVE_BYTES / 1e6:.0f} MB free and needs at least one block "
+                f"({ring.slot_frames * fb / 1e6:.1f} MB)"
+            )
+        cap = self.max_bytes // fb
+        self._asked_frames = max_frames
+        self.max_frames = cap if max_frames is None else min(max_frames, cap)
+        self.stop_reason: str | None = None
         self._reader = ring.reader(start="latest", keep=max(1, ring.n_slots // 2))
         self._writer = DatWriter(path, layout, rate_hz=rate_hz, meta=meta or {})
         self._stop = threading.Event()
@@ -54,8 +86,15 @@ class Recorder:
 
     def _run(self) -> None:
         r = self._reader
+        next_check = time.monotonic() + _SPACE_CHECK_S
         try:
             while not self._stop.is_set():
+                if time.monotonic() >= next_check:
+                    next_check = time.monotonic() + _SPACE_CHECK_S
+                    free = free_bytes(self.path.parent)
+                    if free < RESERVE_BYTES:
+                        self.stop_reason = f"disk nearly full ({free / 1e6:.0f} MB free)"
+                        break
                 blk = r.poll()
                 if blk is None:
                     self._stop.wait(0.002)
@@ -76,15 +115,23 @@ class Recorder:
                     self.drop_map.append([blk.index, 0, "discontinuity"])
                 if self.first_step is None:
                     self.first_step = blk.index
-                if self.max_frames is not None:
-                    data = data[: self.max_frames - self.frames]
-                self._writer.write_packed(data)
-                self.frames += data.shape[0]
-                if self.max_frames is not None and self.frames >= self.max_frames:
+                data = data[: self.max_frames - self.frames]
+                try:
+                    self._writer.write_packed(data)
+                finally:
+                    self.frames = self._writer.n_frames  # whole frames on disk, even on error
+                if self.frames >= self.max_frames:
+                    self.stop_reason = (
+                        "max_frames reached" if self.frames == self._asked_frames
+                        else f"size cap reached ({self.frames * self.layout.frame_bytes} bytes)"
+                    )
                     break
         except Exception as exc:  # noqa: BLE001 - reported in status and the sidecar
             self.error = f"{type(exc).__name__}: {exc}"
+            self.stop_reason = "error"
         finally:
+            if self.stop_reason is None:
+                self.stop_reason = "stopped"
             self._finish()
 
     def _finish(self) -> None:
@@ -97,9 +144,13 @@ class Recorder:
                 "lost_frames": lost,
                 "clean_capture": lost == 0 and self.error is None,
                 "record_error": self.error,
+                "stop_reason": self.stop_reason,
             }
         )
-        self._writer.close()
+        try:
+            self._writer.close()
+        except OSError as exc:  # e.g. no room left even for the sidecar: the .dat still opens
+            self.error = (self.error + "; " if self.error else "") + f"sidecar not written: {exc}"
         self._reader.close()
 
     def stop(self, timeout: float = 10.0) -> dict[str, Any]:
@@ -120,4 +171,6 @@ class Recorder:
             "elapsed_s": round(time.monotonic() - self.started, 3),
             "lost_frames": sum(d[1] for d in self.drop_map),
             "error": self.error,
+            "max_bytes": self.max_bytes,
+            "stop_reason": None if self.running else self.stop_reason,
         }

@@ -285,7 +285,12 @@ class Runtime:
             return self.get_config()
 
     # -- recording --------------------------------------------------------------------------------
-    def start_recording(self, name: str | None, max_frames: int | None = None) -> dict[str, Any]:
+    def start_recording(
+        self, name: str | None, max_frames: int | None = None, max_bytes: int | None = None
+    ) -> dict[str, Any]:
+        """Record the live stream to ``DATA_DIR/recordings/NAME.dat`` (+ sidecar), capped at
+        ``max_bytes`` (default: the free space less the recorder's reserve); OSError when not
+        even one block fits."""
         from service.recorder import Recorder
 
         with self._lock:
@@ -316,6 +321,7 @@ class Runtime:
                 rate_hz=src.info.rate_hz,
                 meta=meta,
                 max_frames=max_frames,
+                max_bytes=max_bytes,
             )
             return self.recorder.describe()
 

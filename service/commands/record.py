@@ -5,6 +5,7 @@ the USB camera (pyusb); replay and simulator sources need only the base install.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -27,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     lim = p.add_mutually_exclusive_group(required=True)
     lim.add_argument("--frames", type=int, help="frames (steps) to record")
     lim.add_argument("--seconds", type=float, help="sensor seconds to record")
+    p.add_argument("--max-bytes", type=int, metavar="N",
+                   help="size cap of OUTPUT in bytes; recording stops cleanly there (default "
+                   "and upper limit: the free space less 64 MB)")
     p.add_argument("--force", action="store_true", help="overwrite OUTPUT")
 
 
@@ -59,6 +63,20 @@ def run(args: argparse.Namespace) -> int:
         want = args.frames if args.frames is not None else int(round(args.seconds * info.rate_hz))
         if want < 1:
             raise ValueError("nothing to record: ask for at least one frame")
+        from service.recorder import RESERVE_BYTES, free_bytes
+
+        fb = info.layout.frame_bytes
+        room = free_bytes(out.resolve().parent) - RESERVE_BYTES
+        if args.max_bytes is not None and args.max_bytes < fb:
+            raise ValueError(f"--max-bytes {args.max_bytes} is less than one frame ({fb} bytes)")
+        cap = room if args.max_bytes is None else min(room, args.max_bytes)
+        if cap < fb:
+            raise OSError(f"not enough free space for {out}: a recording keeps "
+                          f"{RESERVE_BYTES / 1e6:.0f} MB free")
+        if want * fb > cap:
+            print(f"cfsr record: capped at {cap // fb} frames ({cap / 1e6:.1f} MB)",
+                  file=sys.stderr)
+            want = cap // fb
         drop_map: list[list[int | str]] = []
         got = 0
         t0 = time.monotonic()

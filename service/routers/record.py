@@ -20,13 +20,18 @@ async def record_status(rt: RuntimeDep) -> dict:
 
 @router.post("/api/record", response_model=RecordStatus,
              summary="start or stop recording (DATA_DIR/recordings/NAME.dat + sidecar)",
-             responses={409: {"description": "already recording / not recording / exists"}})
+             responses={409: {"description": "already recording / not recording / exists"},
+                        507: {"description": "not enough free space to start"}})
 async def record(body: RecordRequest, rt: RuntimeDep) -> dict:
     try:
         if body.action == "start":
-            return await asyncio.to_thread(rt.start_recording, body.name, body.max_frames)
+            return await asyncio.to_thread(
+                rt.start_recording, body.name, body.max_frames, body.max_bytes
+            )
         return await asyncio.to_thread(rt.stop_recording)
     except ConflictError as exc:
         raise HTTPException(409, str(exc)) from exc
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from exc
+    except OSError as exc:  # no room on the disk: the request cannot be served now
+        raise HTTPException(507, str(exc)) from exc

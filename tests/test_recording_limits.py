@@ -1,0 +1,120 @@
+"""Recording never leaves an unreadable file: a full disk trims the partial frame and the
+sidecar is written atomically; a size cap and the free space stop a recording cleanly
+(issue 12, item 9)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cfsr
+from cfsr.datfile import DatWriter, sidecar_path
+from cfsr.layout import Layout
+
+sys.path.insert(0, str(Path(__file__).parent / "usb"))
+from livehelpers import LiveServer, write_pattern  # noqa: E402
+
+LAY = Layout(400, 250)
+
+
+@contextlib.contextmanager
+def tiny_tmpfs(where: Path, size: str):
+    """A real filesystem that fills up: a tmpfs of ``size`` (needs root, as in CI)."""
+    where.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here (needs root): {r.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_full_disk_keeps_whole_frames_and_a_whole_sidecar(tmp_path):
+    with tiny_tmpfs(tmp_path / "fs", "1m") as fs:
+        filler = fs / "filler"
+        filler.write_bytes(b"\0" * 100_000)
+        path = fs / "rec.dat"
+        block = (np.arange(7 * LAY.frame_bytes) % 251).astype(np.uint8).reshape(7, -1)
+        w = DatWriter(path, LAY, meta={"gain": 0.5})
+        with pytest.raises(OSError) as exc:
+            for _ in range(100):  # 100 x 7 frames = 8.75 MB > 1 MB
+                w.write_packed(block)
+        assert exc.value.errno == 28  # ENOSPC, not a made-up error
+        size = path.stat().st_size
+        assert size % LAY.frame_bytes == 0 and size == w.n_frames * LAY.frame_bytes > 0
+        filler.unlink()  # room again for the sidecar
+        w.close()
+        rec = cfsr.read_dat(path)
+        assert rec.n_frames == w.n_frames
+        np.testing.assert_array_equal(rec.packed(0, 1)[0], block[0])
+        assert json.loads(sidecar_path(path).read_text())["n_frames"] == w.n_frames
+        assert not [p for p in fs.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_no_room_for_the_sidecar_leaves_no_partial_one(tmp_path):
+    with tiny_tmpfs(tmp_path / "fs", "200k") as fs:
+        path = fs / "rec.dat"
+        w = DatWriter(path, LAY)
+        with pytest.raises(OSError):
+            for _ in range(100):
+                w.write_packed(np.zeros((3, LAY.frame_bytes), np.uint8))
+        # the trimmed partial frame freed a little room: another writer takes it
+        with open(fs / "other", "wb", buffering=0) as f, contextlib.suppress(OSError):
+            while True:
+                f.write(b"\1" * 4096)
+        with pytest.raises(OSError):
+            w.close()  # the disk is full: the sidecar cannot be written
+        side = sidecar_path(path)
+        assert not side.exists()  # not a 0-byte sidecar that makes the recording unreadable
+        assert not [p for p in fs.iterdir() if p.name.endswith(".tmp")]
+        assert cfsr.read_dat(path).n_frames == w.n_frames  # 400 x 250 default geometry
+
+
+def test_cli_record_stops_at_the_size_cap(tmp_path):
+    src = write_pattern(tmp_path / "src.dat", 1000)
+    out = tmp_path / "out.dat"
+    r = subprocess.run([sys.executable, "-m", "cfsr", "record", "--replay", str(src),
+                        "--frames", "1000", "--max-bytes", str(300 * LAY.frame_bytes + 5),
+                        "-o", str(out)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "capped at 300 frames" in r.stderr
+    assert cfsr.read_dat(out).n_frames == 300
+    r = subprocess.run([sys.executable, "-m", "cfsr", "record", "--replay", str(src),
+                        "--frames", "10", "--max-bytes", "100", "-o", str(tmp_path / "x.dat")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "less than one frame" in r.stderr
+
+
+def test_live_recording_stops_cleanly_at_its_cap_and_opens(tmp_path):
+    data = tmp_path / "data"
+    src = write_pattern(data / "a.dat", 3000)
+    with LiveServer(["--replay", str(src), "--data-dir", str(data)]) as s:
+        cap = 5_000_000  # 400 frames: more than one ring block, less than a second
+        r = s.post("/api/record", json={"action": "start", "name": "capped", "max_bytes": cap})
+        assert r.status_code == 200, r.text
+        st = s.wait_for(lambda x: not x["recording"]["recording"], timeout=60,
+                        what="the recording to stop at its cap")
+        rec = st["recording"]
+        assert rec["stop_reason"].startswith("size cap reached"), rec
+        assert rec["frames"] == cap // LAY.frame_bytes and rec["error"] is None
+        path = data / "recordings" / "capped.dat"
+        assert path.stat().st_size == rec["frames"] * LAY.frame_bytes
+        assert cfsr.read_dat(path).n_frames == rec["frames"]
+        # listed as usable and playable
+        items = [x for x in s.get("/api/sources").json() if x["name"] == "recordings/capped.dat"]
+        assert items and items[0]["frames"] == rec["frames"]
+        assert s.put("/api/source", json={"id": items[0]["id"]}).status_code == 200
+        # a cap below one block is refused up front, nothing is created
+        r = s.post("/api/record", json={"action": "start", "name": "tiny", "max_bytes": 1000})
+        assert r.status_code in (422, 507), r.text
+        assert not (data / "recordings" / "tiny.dat").exists()
+        assert os.path.exists(path)
