@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import logging
 import struct
 import time
 from collections import deque
@@ -40,6 +41,8 @@ import numpy as np
 from service.frameslot import FrameSlot, SlotFrame
 
 __all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message", "WS_HEADER"]
+
+log = logging.getLogger("cfsr.hub")
 
 WS_MAGIC = b"CFSR"
 WS_VERSION = 1
@@ -166,6 +169,8 @@ class FrameHub:
         self.frames_seen = 0
         self.closed_clients_dropped = 0
         self.closed_clients_sent = 0
+        self.errors = 0  # fan-out failures (logged; the loop goes on)
+        self.last_error: str | None = None
         self._new = asyncio.Event()
 
     def add(self, client: ClientQueue) -> ClientQueue:
@@ -203,10 +208,17 @@ class FrameHub:
         return self.latest
 
     async def run(self) -> None:
+        last_logged = ""
         while True:
             try:
                 self.poll_once()
-            except Exception:  # noqa: BLE001 - never let the fan-out die
+            except Exception as exc:  # noqa: BLE001 - never let the fan-out die, but say why
+                text = f"{type(exc).__name__}: {exc}"
+                self.last_error = text
+                self.errors += 1
+                if text != last_logged:  # once per distinct error, not 10 times a second
+                    log.exception("frame fan-out failed: %s", text)
+                    last_logged = text
                 await asyncio.sleep(0.1)
             await asyncio.sleep(self.poll_s)
 
