@@ -57,6 +57,7 @@ class StreamingReconstructor:
         self.slack = int(slack)
         self.gaps = 0
         self._buf: np.ndarray | None = None
+        self._capacity = 0  # frames the mirrored ring holds (its rows / 2)
         self._first = 0  # absolute step of the oldest buffered frame
         self._next = 0  # absolute step expected next
         self._count = 0  # buffered frames
@@ -66,27 +67,38 @@ class StreamingReconstructor:
     def set_method(
         self, method: str, *, params: Mapping[str, Any] | None = None, preset: str | None = None
     ) -> None:
-        """Switch method/parameters at run time; buffered history is kept when it fits."""
+        """Switch method/parameters at run time, all or nothing.
+
+        The new state is built completely first (parameters validated, the history buffer
+        of the new window's size allocated and filled with the buffered frames that still
+        fit); only then does it replace the running one. Whatever fails on the way (a
+        ValueError naming a parameter, a MemoryError for the buffer) leaves the reconstructor
+        exactly as it was, still reconstructing. The buffer follows the window both ways, so
+        the memory of a large window is given back when a smaller one replaces it.
+        """
         m: Method = get_method(method)
         p = resolve_params(m, params, preset)
-        before, after = m.window(p)
+        before, after = (int(x) for x in m.window(p))
+        cap = before + after + 1 + self.slack
+        buf, keep = self._buf, self._count
+        if buf is None or cap != self._capacity:
+            buf = np.zeros((2 * cap, self.layout.frame_bytes), np.uint8)  # may raise
+            keep = min(self._count, cap)  # the newest frames that fit
+            if keep:
+                a = self._next - keep
+                _write_mirrored(buf, cap, self.packed(a, self._next), a)
+        # commit: plain assignments from here on, nothing can fail half-way
         self.method, self.params = m, p
-        self.before, self.after = int(before), int(after)
-        cap = self.before + self.after + 1 + self.slack
-        if self._buf is None or self._buf.shape[0] < 2 * cap:
-            old = self._snapshot()
-            self._capacity = cap
-            self._buf = np.zeros((2 * cap, self.layout.frame_bytes), np.uint8)
-            self._count = 0
-            if old is not None:
-                start, data = old
-                self._first = self._next = start
-                self._append(data[-cap:], start + max(0, len(data) - cap))
+        self.before, self.after = before, after
+        if buf is not self._buf:
+            self._buf, self._capacity = buf, cap
+            self._count = keep
+            self._first = self._next - keep
 
-    def _snapshot(self) -> tuple[int, np.ndarray] | None:
-        if self._buf is None or self._count == 0:
-            return None
-        return self._first, self.packed(self._first, self._next).copy()
+    @property
+    def buffer_nbytes(self) -> int:
+        """Bytes of the history buffer (a mirrored ring: twice the frames it holds)."""
+        return 0 if self._buf is None else int(self._buf.nbytes)
 
     # -- input ---------------------------------------------------------------------------
     @property
@@ -142,13 +154,7 @@ class StreamingReconstructor:
             self._count = 0
             self._first = start
         n = len(packed)
-        i0 = start % cap
-        k = min(n, cap - i0)
-        buf[i0 : i0 + k] = packed[:k]
-        buf[i0 + cap : i0 + cap + k] = packed[:k]
-        if n > k:
-            buf[: n - k] = packed[k:]
-            buf[cap : cap + n - k] = packed[k:]
+        _write_mirrored(buf, cap, packed, start)
         self._next = start + n
         self._count = min(cap, self._count + n)
         self._first = self._next - self._count
@@ -227,3 +233,17 @@ class StreamingReconstructor:
             if not self.can_compute(t, final=True):
                 raise ValueError(f"step {t} is outside the stream [{self._first}, {self._next})")
             yield t, self.compute(t, final=True)
+
+
+def _write_mirrored(buf: np.ndarray, cap: int, packed: np.ndarray, start: int) -> None:
+    """Write frames ``packed`` (at most ``cap``), the first being step ``start``, into the
+    mirrored ring ``buf`` of ``cap`` frames: step s lives at rows ``s % cap`` and
+    ``s % cap + cap``, so any ``cap`` consecutive steps are one contiguous slice."""
+    n = len(packed)
+    i0 = start % cap
+    k = min(n, cap - i0)
+    buf[i0 : i0 + k] = packed[:k]
+    buf[i0 + cap : i0 + cap + k] = packed[:k]
+    if n > k:
+        buf[: n - k] = packed[k:]
+        buf[cap : cap + n - k] = packed[k:]

@@ -17,10 +17,12 @@ import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.staticfiles import StaticFiles
 
 from service.hub import FrameHub
+from service.models import reject_non_finite_json
 from service.runtime import Runtime
 from service.settings import Settings
 
@@ -60,6 +62,8 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
             await asyncio.to_thread(rt.stop)
 
     app = FastAPI(
+        # every body, on every router, is refused with 422 if it holds NaN/Infinity/1e999
+        dependencies=[Depends(reject_non_finite_json)],
         title="CFSR live",
         version=_version(),
         summary="Live spike-camera reconstruction: sources, worker, frames, masks, metrics.",
@@ -73,6 +77,16 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         ),
         lifespan=lifespan,
     )
+    @app.exception_handler(HTTPException)
+    async def _http_error(request: Request, exc: HTTPException):
+        # One 422 shape for the whole API: our own checks (a method's parameter range, a seek
+        # outside the recording) answer in FastAPI's validation-error format, the one the
+        # OpenAPI document promises for 422, not a bare string.
+        if exc.status_code == 422 and isinstance(exc.detail, str):
+            exc = HTTPException(422, [{"loc": ["body"], "msg": exc.detail,
+                                       "type": "value_error"}], headers=exc.headers)
+        return await http_exception_handler(request, exc)
+
     app.state.settings = settings
     app.state.metrics = status.make_registry(app)
     for r in (health, session, status, config, sources, record, media):

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+import json
+import math
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, BeforeValidator, Field
+from starlette.requests import HTTPConnection
 
 __all__ = [
     "ClientDrops",
@@ -12,6 +17,7 @@ __all__ = [
     "ConfigUpdate",
     "DisplayConfig",
     "Drops",
+    "FiniteFloat",
     "Health",
     "MethodInfo",
     "RecordRequest",
@@ -25,7 +31,76 @@ __all__ = [
     "StatusModel",
     "StepRequest",
     "WorkerStatus",
+    "reject_non_finite_json",
 ]
+
+
+def _nan_as_text(v: Any) -> Any:
+    # A 422 answer echoes the bad input, and JSON cannot carry NaN or Infinity (rendering
+    # it fails: a 500). As text, the value is still refused ("NaN" is no finite number) and
+    # the answer can name it.
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    return v
+
+
+#: A float that must be finite: NaN and +-Infinity are refused (422, not 500). Starlette's
+#: JSON parser accepts the literals ``NaN``/``Infinity`` and ``1e999`` gives an infinity, and
+#: NaN passes every ``gt``/``le`` bound (all comparisons with NaN are false).
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False), BeforeValidator(_nan_as_text)]
+
+
+class _NonFinite(ValueError):
+    pass
+
+
+def _refuse_constant(name: str) -> float:
+    raise _NonFinite(name)
+
+
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if not math.isfinite(v):
+        raise _NonFinite(text)
+    return v
+
+
+async def reject_non_finite_json(conn: HTTPConnection) -> None:
+    """Router dependency: a JSON body with ``NaN``, ``Infinity`` or a number too large for a
+    float (``1e999``) is a 422 naming it, before any model sees it.
+
+    Needed besides :data:`FiniteFloat` for values the models take as ``Any`` (method
+    parameters) and for bodies whose shape is wrong (``{"display": NaN}``): FastAPI's 422
+    answer echoes the input, and an input holding NaN cannot be rendered (a 500).
+    """
+    if not isinstance(conn, Request):  # a WebSocket has no body (app-wide dependency)
+        return
+    if "json" not in conn.headers.get("content-type", ""):
+        return
+    body = await conn.body()
+    if not body:
+        return
+    try:
+        json.loads(body, parse_constant=_refuse_constant, parse_float=_finite_float)
+    except _NonFinite as exc:
+        # the shape of FastAPI's own 422 (HTTPValidationError), so clients parse one kind
+        text = str(exc)[:40]
+        raise RequestValidationError(
+            [
+                {
+                    "type": "finite_number",
+                    "loc": ("body",),
+                    "msg": f"Input should be a finite number (the JSON body holds {text})",
+                    "input": text,
+                }
+            ]
+        ) from None
+    except ValueError:
+        return  # malformed JSON: FastAPI's own parser reports it
+
+
+#: frames per second the worker may publish: below 0.1 a viewer would wait minutes for a frame
+MAX_FPS_RANGE = (0.1, 240.0)
 
 
 class Health(BaseModel):
@@ -39,7 +114,7 @@ class DisplayConfig(BaseModel):
         description="recording: the file's display gain if it has one, else auto; auto: the "
         "99.5th percentile of each frame; fixed: `gain`",
     )
-    gain: float | None = Field(
+    gain: FiniteFloat | None = Field(
         None, gt=0, le=1, description="firing rate shown as white, spikes/step (fixed mode)"
     )
 
@@ -52,22 +127,36 @@ class ConfigModel(BaseModel):
     effective_gain: float | None = Field(
         None, description="gain in use (None: automatic per frame), spikes/step"
     )
+    state: Literal["applied", "pending"] = Field(
+        "applied",
+        description="after PUT: applied (the worker runs it; HTTP 200) or pending (the worker "
+        "did not answer within a few seconds, e.g. compiling; HTTP 202: it applies commands in "
+        "order, see worker.applied_version in GET /api/status)",
+    )
+    version: int | None = Field(None, description="after PUT: the worker's config version")
 
 
 class ConfigUpdate(BaseModel):
     method: str | None = None
     params: dict[str, Any] | None = Field(
         None, description="parameters to set; omitted ones keep their values (reset on a "
-        "method change)"
+        "method change); each must lie in its range (GET /api/methods), else 422"
     )
     display: DisplayConfig | None = None
-    max_fps: float | None = Field(None, gt=0, le=240)
+    max_fps: FiniteFloat | None = Field(
+        None, ge=MAX_FPS_RANGE[0], le=MAX_FPS_RANGE[1],
+        description="most frames per second the worker publishes",
+    )
 
 
 class ParamInfo(BaseModel):
     default: Any
     unit: str
     help: str
+    minimum: float | None = Field(None, description="smallest accepted value (numbers)")
+    maximum: float | None = Field(None, description="largest accepted value (numbers)")
+    choices: list[Any] | None = Field(None, description="accepted values (text)")
+    range: str = Field("", description="the accepted values in words")
 
 
 class MethodInfo(BaseModel):
@@ -77,6 +166,9 @@ class MethodInfo(BaseModel):
     masks: list[str]
     params: dict[str, ParamInfo]
     presets: dict[str, dict[str, Any]] = {}
+    max_window_steps: int | None = Field(
+        None, description="most steps a parameter set may reach around t (before + after)"
+    )
 
 
 class ReplayState(BaseModel):
@@ -95,13 +187,16 @@ class ReplayState(BaseModel):
 
 class ReplayUpdate(BaseModel):
     playing: bool | None = None
-    speed: float | None = Field(None, gt=0, le=1000, description="1.0 = real time")
+    speed: FiniteFloat | None = Field(None, gt=0, le=1000, description="1.0 = real time")
     loop: bool | None = None
 
 
 class SeekRequest(BaseModel):
-    position: int | None = Field(None, ge=0, description="file frame")
-    seconds: float | None = Field(None, ge=0, description="time into the recording, s")
+    # bounds keep seconds * rate_hz an exact int64 frame (2^48 frames: 223 years at 40 kHz)
+    position: int | None = Field(None, ge=0, le=1 << 48, description="file frame")
+    seconds: FiniteFloat | None = Field(
+        None, ge=0, le=(1 << 48) / 40_000, description="time into the recording, s"
+    )
 
 
 class StepRequest(BaseModel):

@@ -54,15 +54,18 @@ class Recorder:
         self.layout = layout
         fb = layout.frame_bytes
         room = free_bytes(self.path.parent) - RESERVE_BYTES
-        if max_bytes is not None and max_bytes < fb:
-            raise ValueError(f"max_bytes {max_bytes} is less than one frame ({fb} bytes)")
+        block = ring.slot_frames * fb
+        if max_bytes is not None and max_bytes < block:
+            # the request is what is wrong (422), not the disk (507)
+            raise ValueError(f"max_bytes {max_bytes} is less than one block of the stream "
+                             f"({ring.slot_frames} frames = {block} bytes)")
         self.max_bytes = min(room, max_bytes) if max_bytes is not None else room
-        if self.max_bytes < ring.slot_frames * fb:
+        if self.max_bytes < block:
             raise OSError(
                 f"not enough free space to record in {self.path.parent}: "
                 f"{max(0, room + RESERVE_BYTES) / 1e6:.0f} MB free, a recording keeps "
                 f"{RESERVE_BYTES / 1e6:.0f} MB free and needs at least one block "
-                f"({ring.slot_frames * fb / 1e6:.1f} MB)"
+                f"({block / 1e6:.1f} MB)"
             )
         cap = self.max_bytes // fb
         self._asked_frames = max_frames

@@ -24,6 +24,7 @@ from driver.ring import SpikeRing
 from driver.source import CameraControl, ReplayControl, Source
 from service.catalog import SourceCatalog
 from service.frameslot import FrameSlot
+from service.models import MAX_FPS_RANGE
 from service.settings import Settings, SourceSpec
 from service.worker import WorkerSupervisor
 
@@ -226,8 +227,10 @@ class Runtime:
         return ctl
 
     # -- configuration ----------------------------------------------------------------------------
-    def _effective_gain(self) -> float | None:
-        d = self.config["display"]
+    def _effective_gain(self, config: dict[str, Any] | None = None) -> float | None:
+        """Display gain the worker uses (spikes/step shown as white; None: auto per frame)
+        under ``config`` (default: the stored one)."""
+        d = (self.config if config is None else config)["display"]
         if d["gain_mode"] == "fixed" and d.get("gain"):
             return float(d["gain"])
         if d["gain_mode"] == "recording" and self.source is not None:
@@ -236,17 +239,27 @@ class Runtime:
                 return float(g)
         return None
 
-    def _worker_config(self) -> dict[str, Any]:
+    def _worker_config(self, config: dict[str, Any] | None = None) -> dict[str, Any]:
+        """What the worker needs of ``config`` (default: the stored one)."""
+        c = self.config if config is None else config
         return {
-            "method": self.config["method"],
-            "params": dict(self.config["params"]),
-            "gain": self._effective_gain(),
-            "max_fps": float(self.config["max_fps"]),
+            "method": c["method"],
+            "params": dict(c["params"]),
+            "gain": self._effective_gain(c),
+            "max_fps": float(c["max_fps"]),
             "deterministic": self.settings.replay_mode == "fast",
         }
 
     def get_config(self) -> dict[str, Any]:
+        self._settle_pending_config()
         return {**self.config, "effective_gain": self._effective_gain()}
+
+    #: Seconds :meth:`set_config` waits for the worker to apply a configuration before it
+    #: answers "pending" (the worker reads commands between frames; a first frame of a
+    #: method may first compile its kernels, which takes longer).
+    config_ack_timeout_s: float = 5.0
+    #: A configuration stored before the worker answered: (version, the one it replaced).
+    _pending_config: tuple[int, dict[str, Any], dict[str, Any]] | None = None
 
     def set_config(
         self,
@@ -256,10 +269,21 @@ class Runtime:
         display: dict[str, Any] | None = None,
         max_fps: float | None = None,
     ) -> dict[str, Any]:
-        """Validate, store and forward to the worker; ValueError names what is wrong."""
+        """Validate, hand to the worker, and store once the worker applied it.
+
+        All or nothing: a value out of range raises ValueError here; a configuration the
+        worker cannot apply (it keeps running the old one) raises ValueError with the
+        worker's reason, and the stored configuration is not changed. When the worker has
+        not answered within :attr:`config_ack_timeout_s`, the configuration is stored (the
+        worker applies commands in order) and the result says ``state: "pending"``; should
+        the worker reject it later, the next :meth:`get_config`/:meth:`set_config` restores
+        the one it replaced. Returns the configuration with ``state`` (``applied`` or
+        ``pending``) and the worker's config ``version``.
+        """
         from cfsr.methods.registry import get_method, resolve_params
 
         with self._lock:
+            self._settle_pending_config()
             new = dict(self.config)
             if method is not None:
                 m = get_method(method)
@@ -272,17 +296,51 @@ class Runtime:
             new["params"] = resolve_params(m, base)
             if display is not None:
                 d = {**new["display"], **{k: v for k, v in display.items() if v is not None}}
-                if d.get("gain_mode") == "fixed" and not d.get("gain"):
+                if d.get("gain_mode") not in ("recording", "auto", "fixed"):
+                    raise ValueError(
+                        f"display gain_mode {d.get('gain_mode')!r}: use recording, auto or fixed"
+                    )
+                gain = d.get("gain")
+                if gain is not None and (
+                    isinstance(gain, bool)
+                    or not isinstance(gain, int | float)
+                    or not (math.isfinite(gain) and 0 < gain <= 1)
+                ):
+                    raise ValueError(f"display gain must be in (0, 1] spikes/step, got {gain!r}")
+                if d.get("gain_mode") == "fixed" and not gain:
                     raise ValueError("display gain_mode 'fixed' needs a gain (spikes/step)")
                 new["display"] = d
             if max_fps is not None:
-                if not 0 < float(max_fps) <= 240:
-                    raise ValueError(f"max_fps must be in (0, 240], got {max_fps}")
+                # written so that NaN fails too (every comparison with NaN is false)
+                lo, hi = MAX_FPS_RANGE
+                if not (math.isfinite(float(max_fps)) and lo <= float(max_fps) <= hi):
+                    raise ValueError(f"max_fps must be in [{lo}, {hi}] frames/s, got {max_fps}")
                 new["max_fps"] = float(max_fps)
+            if self.worker is None:
+                self.config = new
+                return {**self.get_config(), "state": "applied", "version": None}
+            version = self.worker.configure(**self._worker_config(new))
+            state, reason = self.worker.wait_config(version, self.config_ack_timeout_s)
+            if state == "rejected":
+                raise ValueError(f"configuration not applied, {reason}")
+            if state == "pending":
+                self._pending_config = (version, new, self.config)
             self.config = new
-            if self.worker is not None:
-                self.worker.configure(**self._worker_config())
-            return self.get_config()
+            return {**self.get_config(), "state": state, "version": version}
+
+    def _settle_pending_config(self) -> None:
+        """Take the worker's late answer to a configuration stored while "pending"."""
+        pend, w = self._pending_config, self.worker
+        if pend is None or w is None:
+            return
+        version, stored, replaced = pend
+        state, _ = w.wait_config(version, 0.0)
+        if state == "pending":
+            return
+        with self._lock:
+            self._pending_config = None
+            if state == "rejected" and self.config is stored:
+                self.config = replaced
 
     # -- recording --------------------------------------------------------------------------------
     def start_recording(

@@ -7,7 +7,10 @@ when it falls behind it skips the backlog it does not need (counted as ``worker_
 the ring overran it, the ring reader counts those frames (``ring_lost``).
 
 The :class:`WorkerSupervisor` (in the web process) starts it, forwards configuration changes,
-and restarts it after a crash (reported, with backoff) without taking the service down.
+and restarts it after a crash (reported, with backoff) without taking the service down. The
+worker applies each configuration all or nothing and answers every version: applied, or
+rejected with the reason while the previous configuration keeps running
+(:meth:`WorkerSupervisor.wait_config`).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import queue
 import threading
 import time
 import traceback
-from collections import deque
+from collections import OrderedDict, deque
 from typing import Any
 
 __all__ = ["WorkerSupervisor", "worker_main"]
@@ -82,33 +85,49 @@ class _Worker:
         self._skip_expect_cum = None
         self._build()
 
-    def _build(self) -> None:
+    def _build(self, cfg: dict[str, Any] | None = None) -> None:
+        """Make the reconstructor run ``cfg`` (default: the current config), all or nothing.
+
+        The new reconstructor state is built completely before it replaces the running one
+        (:meth:`StreamingReconstructor.set_method` is itself atomic); on any failure this
+        raises with the old configuration and reconstructor untouched. On success the config
+        becomes current and its version is acknowledged to the supervisor.
+        """
         from cfsr.streaming import StreamingReconstructor
 
-        cfg = self.config
+        cfg = self.config if cfg is None else cfg
+        params = cfg.get("params") or {}
         if self.rec is None or self.rec.layout != self.layout:
+            rec = StreamingReconstructor(cfg["method"], self.layout, params=params, slack=1024)
             if self.rec is not None:
                 self._gaps_base += self.rec.gaps
-            self.rec = StreamingReconstructor(
-                cfg["method"], self.layout, params=cfg.get("params") or {}, slack=1024
-            )
+            self.rec = rec
         else:
-            self.rec.set_method(cfg["method"], params=cfg.get("params") or {})
+            self.rec.set_method(cfg["method"], params=params)
+        self.config = cfg
         self._last_out_step = None
-        self.put("config_version", cfg.get("version", 0))
-        self.evt_q.put(("config", cfg.get("version", 0), cfg["method"], self.rec.params))
+        version = cfg.get("version", 0)
+        self.put("config_version", version)
+        self.evt_q.put(("config", version, cfg["method"], self.rec.params))
 
     def configure(self, cfg: dict[str, Any]) -> None:
-        old = self.config
-        self.config = {**old, **cfg}
+        """Apply a config change (``version`` included) or reject it, keeping the old one.
+
+        Every version gets exactly one answer on the event queue: ``("config", version, ...)``
+        once applied, ``("rejected", version, reason)`` when it could not be (the running
+        reconstruction goes on unchanged, so frames keep coming).
+        """
+        new = {**self.config, **cfg}
+        if self.layout is None:  # not attached yet: the config is used when it is
+            self.config = new
+            return
         try:
-            if self.layout is not None:
-                self._build()
-        except Exception as exc:  # noqa: BLE001 - report and keep the old method
-            self.evt_q.put(("error", f"config rejected: {exc}"))
-            self.config = old
-            if self.layout is not None:
-                self._build()
+            self._build(new)
+        except Exception as exc:  # noqa: BLE001 - any failure rejects this version only
+            reason = f"{type(exc).__name__}: {exc}"
+            self.evt_q.put(("rejected", new.get("version", 0), reason))
+        else:
+            self._next_out = 0.0  # publish under the new config at once, not at the old pace
 
     # -- main loop ------------------------------------------------------------------------------
     def needed_frames(self) -> int:
@@ -311,6 +330,11 @@ class WorkerSupervisor:
         self.ready = threading.Event()
         self.applied_version = -1
         self.applied_params: dict[str, Any] = {}
+        # config versions: issued here, answered by the worker ("config" or "rejected")
+        self._version = int(self.config["version"])
+        self._applied_config = dict(self.config)  # the last version the worker confirmed
+        self._sent: dict[int, dict[str, Any]] = {}  # versions sent, not answered yet
+        self._answers: OrderedDict[int, tuple[str, str | None]] = OrderedDict()
         self._started_at = 0.0
         self._last_message: str | None = None
         self._counter_base: dict[str, float] = {}
@@ -370,11 +394,55 @@ class WorkerSupervisor:
 
     # -- control ----------------------------------------------------------------------------------
     def configure(self, **changes: Any) -> int:
+        """Send a config change to the worker; returns its version (see :meth:`wait_config`).
+
+        ``self.config`` is the configuration asked for; when the worker rejects the newest
+        version, it goes back to the last one the worker confirmed (so a restarted worker
+        starts with a configuration that works).
+        """
         with self._lock:
+            self._version += 1
+            v = self._version
             self.config.update(changes)
-            self.config["version"] = int(self.config.get("version", 0)) + 1
+            self.config["version"] = v
+            self._sent[v] = dict(self.config)
             self._send({"op": "config", "config": dict(self.config)})
-            return self.config["version"]
+            return v
+
+    def wait_config(self, version: int, timeout: float) -> tuple[str, str | None]:
+        """The worker's answer to config ``version``, waiting at most ``timeout`` seconds.
+
+        Returns ``("applied", None)``, ``("rejected", reason)`` or ``("pending", None)`` when
+        no answer came in time (the worker is busy, e.g. compiling a method's kernels on
+        first use; it answers later, see ``applied_version`` and ``last_errors``).
+        """
+        end = time.monotonic() + timeout
+        while True:
+            self._drain()  # not only the monitor's 0.1 s tick: answer as soon as we can
+            with self._lock:
+                if version in self._answers:
+                    return self._answers[version]
+            if time.monotonic() >= end:
+                return ("pending", None)
+            time.sleep(0.005)
+
+    def _answer(self, version: int, state: str, reason: str | None = None) -> None:
+        """Record the worker's answer to ``version`` (called with ``self._lock`` held)."""
+        self._answers[version] = (state, reason)
+        while len(self._answers) > 256:
+            self._answers.popitem(last=False)
+        cfg = self._sent.pop(version, None)
+        if state == "applied":
+            if cfg is not None:
+                self._applied_config = cfg
+            for v in [v for v in self._sent if v < version]:  # answered before, in order
+                self._sent.pop(v)
+            return
+        self.errors.append({"time": time.time(), "message": f"config {version} {reason}"})
+        log.warning("worker config %d not applied: %s", version, reason)
+        if version == self.config.get("version"):
+            # nothing newer was asked for: fall back to what the worker runs
+            self.config = dict(self._applied_config)
 
     def attach(self, ring_path: str, layout: dict[str, Any]) -> None:
         with self._lock:
@@ -401,6 +469,12 @@ class WorkerSupervisor:
 
     # -- monitor thread ---------------------------------------------------------------------------
     def _drain(self) -> None:
+        # Under the lock: the monitor thread and :meth:`wait_config` both drain, and events
+        # must be handled one at a time, in order.
+        with self._lock:
+            self._drain_locked()
+
+    def _drain_locked(self) -> None:
         q = self._evt_q
         while q is not None:
             try:
@@ -413,6 +487,9 @@ class WorkerSupervisor:
             elif kind == "config":
                 self.applied_version = ev[1]
                 self.applied_params = dict(ev[3])
+                self._answer(ev[1], "applied")
+            elif kind == "rejected":
+                self._answer(ev[1], "rejected", f"rejected by the worker: {ev[2][:4000]}")
             elif kind == "error":
                 self.errors.append({"time": time.time(), "message": ev[1][:4000]})
                 log.warning("worker error: %s", ev[1].splitlines()[0])
@@ -445,6 +522,10 @@ class WorkerSupervisor:
                     proc.kill()
                     proc.join(2)
                 self._drain()
+                for v in sorted(self._sent):
+                    # never replay into a fresh worker a config the old one did not confirm:
+                    # it may be what killed it
+                    self._answer(v, "rejected", "not applied: the worker exited first")
                 self._carry_counters()
                 crash = {
                     "time": time.time(),

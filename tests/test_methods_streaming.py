@@ -118,3 +118,100 @@ def test_csr_packed_path_equals_unpacked():
         np.testing.assert_array_equal(m, masks[0])
         np.testing.assert_array_equal(r, rates[0])
     assert masks[0].any() and not masks[0].all()
+
+
+# -- run-time reconfiguration: all or nothing, memory follows the window (issue 12) ---------
+def _random_packed(n, layout, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.integers(0, 256, (n, layout.frame_bytes), dtype=np.uint8)
+
+
+def _same_output(a, b):
+    return np.array_equal(a.rate, b.rate) and a.masks.keys() == b.masks.keys()
+
+
+def test_rejected_window_leaves_the_reconstructor_running():
+    """``window=1e9`` once stopped every frame for good: the method state was changed before
+    the allocation that failed, and the next pushes broke on the stale capacity."""
+    from cfsr.layout import DEFAULT_LAYOUT as lay
+
+    data = _random_packed(2000, lay)
+    rec = StreamingReconstructor("tfp", lay, slack=64)
+    ref = StreamingReconstructor("tfp", lay, slack=64)
+    rec.push(data[:1000], 0)
+    ref.push(data[:1000], 0)
+    with pytest.raises((ValueError, MemoryError)):
+        rec.set_method("tfp", params={"window": 1_000_000_000})
+    kept = (rec.method.name, rec.params, rec.before, rec.after)
+    rec.push(data[1000:1200], 1000)  # still running on the old configuration
+    ref.push(data[1000:1200], 1000)
+    assert _same_output(rec.compute(1199), ref.compute(1199))
+    rec.set_method("tfp", params={"window": 160})  # what a user does next
+    rec.set_method("tfi", params={})  # or switches method
+    ref.set_method("tfi", params={})
+    for start in (1200, 1500):
+        rec.push(data[start : start + 300], start)
+        ref.push(data[start : start + 300], start)
+        t = rec.latest_step()
+        assert t == ref.latest_step() and _same_output(rec.compute(t), ref.compute(t))
+    assert kept == ("tfp", {"window": 160, "mode": "trailing"}, 159, 0)
+
+
+def test_allocation_failure_changes_nothing(monkeypatch):
+    """A valid window whose buffer cannot be allocated (MemoryError) keeps the old method,
+    parameters and history."""
+    from cfsr.layout import Layout
+
+    lay = Layout(width=32, height=24)
+    data = _random_packed(1500, lay, seed=1)
+    rec = StreamingReconstructor("tfp", lay, params={"window": 40}, slack=64)
+    ref = StreamingReconstructor("tfp", lay, params={"window": 40}, slack=64)
+    rec.push(data[:700], 0)
+    ref.push(data[:700], 0)
+    real_zeros = np.zeros
+
+    def zeros(shape, *a, **k):  # the allocator refuses anything above 1 MB
+        if int(np.prod(shape)) > 1 << 20:
+            raise MemoryError("test: cannot allocate")
+        return real_zeros(shape, *a, **k)
+
+    monkeypatch.setattr(np, "zeros", zeros)
+    with pytest.raises(MemoryError):
+        rec.set_method("tfi", params={"max_isi": 20_000})
+    monkeypatch.setattr(np, "zeros", real_zeros)
+    assert rec.method.name == "tfp" and rec.params["window"] == 40
+    assert (rec.first_step, rec.next_step) == (ref.first_step, ref.next_step)
+    rec.push(data[700:], 700)
+    ref.push(data[700:], 700)
+    for t in (rec.latest_step() - 50, rec.latest_step()):
+        assert _same_output(rec.compute(t), ref.compute(t))
+
+
+def test_buffer_shrinks_back_after_a_large_window():
+    """``window=100000`` took the worker from 362 MB to 2.8 GB, and it stayed there after
+    reverting: the history buffer only ever grew. It now follows the window both ways."""
+    import tracemalloc
+
+    from cfsr.layout import DEFAULT_LAYOUT as lay
+
+    data = _random_packed(600, lay, seed=2)
+    tracemalloc.start()  # numpy reports its buffers to tracemalloc
+    try:
+        rec = StreamingReconstructor("tfp", lay, slack=256)
+        rec.push(data, 0)
+        base_traced = tracemalloc.get_traced_memory()[0]
+        rec.set_method("tfp", params={"window": 40_000})  # valid, large: about 1 GB
+        big_traced = tracemalloc.get_traced_memory()[0]
+        rec.set_method("tfp", params={"window": 160})
+        back_traced = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert big_traced - base_traced > 900e6
+    assert back_traced - base_traced < 20e6  # given back (was: kept for good)
+    assert rec.buffer_nbytes == 2 * (160 + 256) * lay.frame_bytes  # the baseline
+    # the history that still fits was kept: the newest window needs no new data
+    ref = StreamingReconstructor("tfp", lay, slack=256)
+    ref.push(data, 0)
+    t = rec.latest_step()
+    assert t == ref.latest_step() == 599
+    assert _same_output(rec.compute(t), ref.compute(t))

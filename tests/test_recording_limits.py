@@ -114,7 +114,8 @@ def test_live_recording_stops_cleanly_at_its_cap_and_opens(tmp_path):
         assert items and items[0]["frames"] == rec["frames"]
         assert s.put("/api/source", json={"id": items[0]["id"]}).status_code == 200
         # a cap below one block is refused up front, nothing is created
-        r = s.post("/api/record", json={"action": "start", "name": "tiny", "max_bytes": 1000})
-        assert r.status_code in (422, 507), r.text
+        for tiny in (1000, 100 * LAY.frame_bytes):  # under a frame, under a block
+            r = s.post("/api/record", json={"action": "start", "name": "tiny", "max_bytes": tiny})
+            assert r.status_code == 422 and "less than one block" in r.text, r.text
         assert not (data / "recordings" / "tiny.dat").exists()
         assert os.path.exists(path)

@@ -99,7 +99,7 @@ def test_config_switch_every_method(server):
             if mk in declared:
                 assert mk in f["masks"], f"{name} declared mask {mk} but sent none"
     r = server.put("/api/config", json={"method": "no-such-method"})
-    assert r.status_code == 422 and "no-such-method" in r.json()["detail"]
+    assert r.status_code == 422 and "no-such-method" in r.json()["detail"][0]["msg"]
     r = server.put("/api/config", json={"method": "tfp", "params": {"bogus": 1}})
     assert r.status_code == 422
     r = server.put("/api/config", json={"method": "tfp", "params": {"window": 64},

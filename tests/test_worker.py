@@ -61,13 +61,13 @@ def _frames(slot, n, timeout=120.0, method=None):
     return out
 
 
-def _expected(rec, method, t):
+def _expected(rec, method, t, params=None):
     m = get_method(method)
-    before, after = m.window(resolve_params(m, {}))
+    before, after = m.window(resolve_params(m, params))
     tt = t % N  # the replay loops; its clock keeps counting
     if tt < before or tt + after >= N:
         return None  # window crosses the loop seam: not comparable with the file
-    out = reconstruct_outputs(rec, method, [tt])[0]
+    out = reconstruct_outputs(rec, method, [tt], params=params)[0]
     return to_display(out.rate, GAIN), out.masks
 
 
@@ -134,3 +134,60 @@ def test_crash_is_reported_and_worker_restarted(pipeline):
     assert "boom for the test" in (sup.crashes[-1]["message"] or "")
     assert sup.ready.wait(120)
     assert _frames(slot, 2)
+
+
+def test_rejected_config_keeps_the_worker_publishing(rec, pipeline):
+    """Issue 12: one ``window=1e9`` stopped the frames for good while the heartbeat stayed
+    healthy. The worker now applies a config all or nothing and answers every version."""
+    dev, ring, slot, sup, acq = pipeline
+    assert _frames(slot, 2, method="tfp")
+    before = sup.applied_version
+    # sent straight to the supervisor: past the web side's checks, like a config that
+    # validates there but cannot be built in the worker
+    bad = sup.configure(method="tfp", params={"window": 1_000_000_000})
+    small = {"max_isi": 50}  # a window no larger than before (no new buffer needed)
+    good = sup.configure(method="tfi", params=small)
+    frames = _frames(slot, 6, method="tfi", timeout=60)
+    assert len(frames) == 6, "no frame after a rejected config"
+    state, reason = sup.wait_config(bad, 30)
+    assert state == "rejected" and "window" in reason and "1000000000" in reason
+    assert sup.wait_config(good, 30) == ("applied", None)
+    assert sup.applied_version == good > bad > before
+    compared = 0
+    for f in frames:  # still exactly the offline reconstruction
+        exp = _expected(rec, "tfi", f.step, small)
+        if exp is not None:
+            assert np.array_equal(f.image, exp[0])
+            compared += 1
+    assert compared >= 2
+    # the newest config rejected: the supervisor falls back to what the worker runs, so a
+    # restarted worker would start with a config that works
+    bad2 = sup.configure(params={"window": 1_000_000_000})
+    assert sup.wait_config(bad2, 30)[0] == "rejected"
+    assert sup.config["method"] == "tfi" and sup.config["params"] == small
+    assert sup.config["version"] == sup.applied_version == good
+    assert any("window" in e["message"] for e in sup.errors)
+    assert _frames(slot, 2, method="tfi")
+
+
+def test_unconfirmed_config_is_not_replayed_into_a_new_worker(pipeline):
+    dev, ring, slot, sup, acq = pipeline
+    assert _frames(slot, 1)
+    sup.inject("crash", code=3)  # dies before it reads the config below
+    v = sup.configure(method="tfi", params={})
+    state, reason = sup.wait_config(v, 60)
+    assert state == "rejected" and "exited" in reason
+    assert sup.config["method"] == "tfp"
+    end = time.monotonic() + 60
+    while sup.restarts < 1 and time.monotonic() < end:
+        time.sleep(0.05)
+    assert sup.restarts == 1 and sup.ready.wait(120)
+    seq = slot.seq
+    end = time.monotonic() + 120
+    while time.monotonic() < end:  # a frame of the new worker, with the confirmed method
+        f = slot.read(since=seq)
+        if f is not None:
+            break
+        time.sleep(0.005)
+    assert f is not None and f.method == "tfp", "no frames after the restart"
+    assert sup.applied_version == sup.config["version"]

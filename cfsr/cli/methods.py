@@ -24,7 +24,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"        ref: {d['reference']}")
         for k, p in d["params"].items():
             unit = f" [{p['unit']}]" if p["unit"] else ""
-            print(f"        {k} = {p['default']!r}{unit}  {p['help']}")
+            rng = f" (range {p['range']})" if p.get("range") else ""
+            print(f"        {k} = {p['default']!r}{unit}{rng}  {p['help']}")
         for pn, pv in d["presets"].items():
             print(f"        preset {pn}: {pv}")
     return 0

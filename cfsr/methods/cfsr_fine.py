@@ -66,38 +66,96 @@ from cfsr.methods.distinction import distinct_in_words
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 from cfsr.methods.staticgate import span_counts, static_gate
 from cfsr.methods.tfp import tfp_span
 
 __all__ = ["fine_mask", "fine_stage", "cfsr_window"]
 
+#: Ranges: a window-like parameter (steps) reaches at most half the ring's limit
+#: (MAX_WINDOW_STEPS) on its side of t, the static gate's two spans a quarter each; frame
+#: counts stay within what one frame can afford (each history or PatchMatch frame is a
+#: full-frame pass); pixel sizes within a sensor's extent. Products (mog_frames * mog_stride,
+#: pm_count * pm_step) are checked as a whole by resolve_params.
 FINE_PARAMS: dict[str, Param] = {
-    "mog_frames": Param(12, "frames", "CSR frames K fed to MOG, ending at t", minimum=1),
-    "mog_stride": Param(32, "steps", "steps between consecutive MOG frames", minimum=1),
-    "mog_window": Param(64, "steps", "TFP window w of the CSR frames fed to MOG", minimum=1),
-    "mog_history": Param(0, "frames", "MOG history length (0: mog_frames)", minimum=0),
+    "mog_frames": Param(
+        12, "frames", "CSR frames K fed to MOG, ending at t", minimum=1, maximum=256
+    ),
+    "mog_stride": Param(
+        32,
+        "steps",
+        "steps between consecutive MOG frames",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "mog_window": Param(
+        64,
+        "steps",
+        "TFP window w of the CSR frames fed to MOG",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "mog_history": Param(
+        0, "frames", "MOG history length (0: mog_frames)", minimum=0, maximum=10_000
+    ),
     "mog_mixtures": Param(3, "", "Gaussians per pixel in MOG", minimum=1, maximum=8),
     "mog_ratio": Param(0.7, "", "MOG background ratio", minimum=0.0, maximum=1.0),
-    "mog_noise": Param(0.0, "8-bit levels", "MOG noise sigma (0: OpenCV default 15)", minimum=0),
-    "mog_gain": Param(0.0, "spikes/step", "rate shown as 255 for MOG (0: auto)", minimum=0),
-    "phi0": Param(20.0, "8-bit levels", "|f - B| threshold for moving objects (Eq. 9)", minimum=0),
-    "phi": Param(0.75, "log ratio", "DAISI edge threshold, natural log (Eq. 14)", minimum=0),
-    "daisi_span": Param(5, "steps", "DAISI evaluated within t +- span (0: at t)", minimum=0),
-    "close_size": Param(9, "pixels", "square closing of the fine mask (0/1: none)", minimum=0),
-    "min_area": Param(16, "pixels", "drop fine-mask components smaller than this", minimum=0),
-    "dilate": Param(2, "pixels", "grow the fine mask by this radius (safety margin)", minimum=0),
-    "pm_step": Param(3, "steps", "spacing of PatchMatch frames t +- step*i", minimum=1),
-    "pm_count": Param(16, "frames", "PatchMatch frames on each side of t", minimum=0),
+    "mog_noise": Param(
+        0.0, "8-bit levels", "MOG noise sigma (0: OpenCV default 15)", minimum=0, maximum=255.0
+    ),
+    "mog_gain": Param(
+        0.0, "spikes/step", "rate shown as 255 for MOG (0: auto)", minimum=0, maximum=1.0
+    ),
+    "phi0": Param(
+        20.0,
+        "8-bit levels",
+        "|f - B| threshold for moving objects (Eq. 9)",
+        minimum=0,
+        maximum=255.0,
+    ),
+    # |log ISI ratio| <= log(40,000) ~ 10.6 for any two intervals within 1 s
+    "phi": Param(
+        0.75, "log ratio", "DAISI edge threshold, natural log (Eq. 14)", minimum=0, maximum=20.0
+    ),
+    "daisi_span": Param(
+        5,
+        "steps",
+        "DAISI evaluated within t +- span (0: at t)",
+        minimum=0,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "close_size": Param(
+        9, "pixels", "square closing of the fine mask (0/1: none)", minimum=0, maximum=64
+    ),
+    "min_area": Param(
+        16, "pixels", "drop fine-mask components smaller than this", minimum=0, maximum=1 << 20
+    ),
+    "dilate": Param(
+        2, "pixels", "grow the fine mask by this radius (safety margin)", minimum=0, maximum=64
+    ),
+    "pm_step": Param(
+        3,
+        "steps",
+        "spacing of PatchMatch frames t +- step*i",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "pm_count": Param(16, "frames", "PatchMatch frames on each side of t", minimum=0, maximum=64),
     "pm_patch": Param(6, "pixels", "patch side", minimum=1, maximum=16),
     "pm_iters": Param(2, "", "PatchMatch scans", minimum=0, maximum=16),
-    "pm_radius": Param(16, "pixels", "largest random-search radius", minimum=0),
+    "pm_radius": Param(16, "pixels", "largest random-search radius", minimum=0, maximum=4096),
     "pm_guide": Param(
         3, "intervals", "guide = TFA over this many intervals (0: the TFI)", minimum=0, maximum=64
     ),
-    "pm_sigma": Param(1.0, "pixels", "Gaussian sigma applied to the guide (0: none)", minimum=0),
+    "pm_sigma": Param(
+        1.0, "pixels", "Gaussian sigma applied to the guide (0: none)", minimum=0, maximum=16.0
+    ),
     "pm_h": Param(
-        0.0, "spikes/step", "match weight scale exp(-SSD/(P^2 h^2)); 0: average", minimum=0
+        0.0,
+        "spikes/step",
+        "match weight scale exp(-SSD/(P^2 h^2)); 0: average",
+        minimum=0,
+        maximum=10.0,
     ),
     "adaptive": Param(
         True,
@@ -110,8 +168,16 @@ FINE_PARAMS: dict[str, Param] = {
         "adaptive: a window whose counts over two static_window spans differ by at most this "
         "at every pixel is output as TFP at once (-1: gate off)",
         minimum=-1,
+        maximum=MAX_WINDOW_STEPS // 4,
     ),
-    "static_window": Param(160, "steps", "length of each span the static gate compares", minimum=1),
+    # the gate's two spans lie back to back before t
+    "static_window": Param(
+        160,
+        "steps",
+        "length of each span the static gate compares",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 4,
+    ),
 }
 
 FINE_PRESETS: dict[str, dict[str, Any]] = {

@@ -19,24 +19,48 @@ import numpy as np
 
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.distinction import coarse_masks, distinct_isi_counts_packed
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 from cfsr.methods.tfi import tfi_rate_packed, tfi_rates
 from cfsr.methods.tfp import tfp_rate, tfp_rate_packed
 
 __all__ = ["csr_frames", "csr_frame_packed", "CSR_PARAMS", "csr_window"]
 
 #: Parameters shared by ``csr`` and ``cfsr`` (defaults calibrated on the simulator, see
-#: docs/methods.md; the paper's values are in the ``paper`` preset).
+#: docs/methods.md; the paper's values are in the ``paper`` preset). Window-like parameters
+#: reach at most half the ring's limit each, so that any combination fits (before + after).
 CSR_PARAMS: dict[str, Param] = {
-    "T": Param(300, "steps", "coarse distinction window T before t (Eq. 5)", minimum=2),
-    "theta": Param(
-        8, "ISI values", "distinct ISI values in T that make a pixel dynamic (Eq. 6)", minimum=1
+    "T": Param(
+        300,
+        "steps",
+        "coarse distinction window T before t (Eq. 5)",
+        minimum=2,
+        maximum=MAX_WINDOW_STEPS // 2,
     ),
-    "tfp_window": Param(160, "steps", "TFP window w for the static region (Eq. 4)", minimum=1),
+    # distinct ISIs in T steps sum to at most T, so there are fewer than sqrt(2 T) <= 283
+    "theta": Param(
+        8,
+        "ISI values",
+        "distinct ISI values in T that make a pixel dynamic (Eq. 6)",
+        minimum=1,
+        maximum=1000,
+    ),
+    "tfp_window": Param(
+        160,
+        "steps",
+        "TFP window w for the static region (Eq. 4)",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
     "tfp_mode": Param(
         "trailing", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
     ),
-    "max_isi": Param(200, "steps", "TFI search range each side of t (Eq. 3)", minimum=1),
+    "max_isi": Param(
+        200,
+        "steps",
+        "TFI search range each side of t (Eq. 3)",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
 }
 
 CSR_PRESETS: dict[str, dict[str, Any]] = {
@@ -49,7 +73,13 @@ CSR_PRESETS: dict[str, dict[str, Any]] = {
 #: window that smears a missed mover less (docs/methods.md, calibration).
 CSR_ONLY_PARAMS: dict[str, Param] = {
     **CSR_PARAMS,
-    "tfp_window": Param(32, "steps", "TFP window w for the static region (Eq. 4)", minimum=1),
+    "tfp_window": Param(
+        32,
+        "steps",
+        "TFP window w for the static region (Eq. 4)",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
     "tfp_mode": Param(
         "centred", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
     ),

@@ -10,18 +10,60 @@ streaming path (:class:`cfsr.StreamingReconstructor`) give identical numbers by 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-__all__ = ["Param", "Method", "Output", "register", "get_method", "methods", "resolve_params"]
+from cfsr.layout import STEP_RATE_HZ
+
+__all__ = [
+    "MAX_UNPACKED_STEPS",
+    "MAX_WINDOW_STEPS",
+    "Param",
+    "Method",
+    "Output",
+    "register",
+    "get_method",
+    "methods",
+    "resolve_params",
+]
+
+#: Most steps a method's window may reach around the output step t (``before + after``):
+#: 1 s at 40 kHz. The streaming reconstructor keeps the window plus its slack twice (mirrored
+#: ring), so at this limit a 400 x 250 sensor holds 2 x 41,000 x 12,500 B, about 1 GB. Window-
+#: like parameters (``window``, ``T``, ``max_isi``, ...) are bounded so that no parameter set
+#: needs more (:func:`resolve_params` checks the combination).
+MAX_WINDOW_STEPS = STEP_RATE_HZ
+#: The same limit for methods without a packed path (``compute_packed``): they unpack their
+#: whole window to one byte per pixel per step, 100 kB per step on a 400 x 250 sensor, so
+#: 0.1 s (4,000 steps) already costs 400 MB per frame.
+MAX_UNPACKED_STEPS = STEP_RATE_HZ // 10
+
+
+def _is_number(kind: type) -> bool:
+    return kind in (int, float)
+
+
+def _num(x: float | None) -> str:
+    """A bound in words: ``40000``, ``0.5``, ``1e-06``."""
+    if x is None:
+        return "?"
+    return str(int(x)) if float(x).is_integer() else repr(float(x))
 
 
 @dataclass(frozen=True)
 class Param:
-    """One method parameter: default value, unit and meaning."""
+    """One method parameter: default value, unit, meaning and accepted values.
+
+    Every numeric parameter has a closed range ``[minimum, maximum]`` (in ``unit``) and every
+    text parameter a list of ``choices``: a value from outside (CLI, HTTP, file) is checked
+    against them once, in :meth:`coerce`, so no method ever sees a value it was not built for
+    (a window of 10^9 steps, a NaN threshold). The range is part of the method's description
+    (:func:`methods`, ``cfsr methods``, ``GET /api/methods``).
+    """
 
     default: Any
     unit: str
@@ -30,33 +72,94 @@ class Param:
     maximum: float | None = None
     choices: tuple[Any, ...] | None = None
 
-    def coerce(self, name: str, value: Any) -> Any:
-        """Convert a CLI/JSON value to the default's type and check bounds."""
+    def __post_init__(self) -> None:
+        # Checked when a method module is imported: a parameter without bounds is a bug.
         kind = type(self.default)
-        try:
-            if kind is bool and isinstance(value, str):
-                low = value.strip().lower()
-                if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
-                    raise ValueError(value)
-                v: Any = low in ("1", "true", "yes", "on")
-            elif kind is int:
-                fv = float(value)
-                if fv != int(fv):
-                    raise ValueError(value)
-                v = int(fv)
-            else:
-                v = kind(value)
-        except (TypeError, ValueError):
+        if _is_number(kind):
+            if self.minimum is None or self.maximum is None:
+                raise ValueError(f"numeric parameter ({self.help!r}) needs minimum and maximum")
+            lo, hi = float(self.minimum), float(self.maximum)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= self.default <= hi):
+                raise ValueError(
+                    f"parameter ({self.help!r}): default {self.default!r} outside "
+                    f"[{self.minimum}, {self.maximum}]"
+                )
+        elif kind is str and not self.choices:
+            raise ValueError(f"text parameter ({self.help!r}) needs choices")
+
+    @property
+    def range_text(self) -> str:
+        """The accepted values in words, e.g. ``1..40000 steps`` or ``trailing|centred``."""
+        if self.choices is not None:
+            return "|".join(str(c) for c in self.choices)
+        if type(self.default) is bool:
+            return "true|false"
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{_num(self.minimum)}..{_num(self.maximum)}{unit}"
+
+    def coerce(self, name: str, value: Any) -> Any:
+        """Convert a CLI/JSON value to the default's type and check it is in range.
+
+        Raises ValueError naming the parameter, the value and the accepted range. Numbers
+        must be finite: NaN compares false with every bound, so it is refused first.
+        """
+        kind = type(self.default)
+        v = _convert(kind, value)
+        if v is _BAD:
             raise ValueError(
-                f"parameter {name}={value!r}: expected {kind.__name__} ({self.unit})"
-            ) from None
+                f"parameter {name}={_show(value)}: expected {kind.__name__} in {self.range_text}"
+            )
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(
+                f"parameter {name}={_show(value)}: must be a finite number in {self.range_text}"
+            )
         if self.choices is not None and v not in self.choices:
-            raise ValueError(f"parameter {name}={v!r}: must be one of {list(self.choices)}")
+            raise ValueError(f"parameter {name}={_show(v)}: must be one of {list(self.choices)}")
         if self.minimum is not None and v < self.minimum:
-            raise ValueError(f"parameter {name}={v!r}: must be >= {self.minimum}")
+            raise ValueError(
+                f"parameter {name}={_show(v)}: must be >= {_num(self.minimum)} "
+                f"(range {self.range_text})"
+            )
         if self.maximum is not None and v > self.maximum:
-            raise ValueError(f"parameter {name}={v!r}: must be <= {self.maximum}")
+            raise ValueError(
+                f"parameter {name}={_show(v)}: must be <= {_num(self.maximum)} "
+                f"(range {self.range_text})"
+            )
         return v
+
+
+def _show(value: Any) -> str:
+    """``repr`` cut to a readable length (values come from outside: a 400-digit number)."""
+    r = repr(value)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+_BAD = object()
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+
+
+def _convert(kind: type, value: Any) -> Any:
+    """``value`` as ``kind`` (a non-finite float stays a float, for the caller to name), or
+    ``_BAD``."""
+    try:
+        if kind is bool:
+            if isinstance(value, str):
+                low = value.strip().lower()
+                return low in _TRUE if low in _TRUE + _FALSE else _BAD
+            if isinstance(value, bool | int | np.bool_ | np.integer) and value in (0, 1):
+                return bool(value)
+            return _BAD
+        if kind in (int, float):
+            if isinstance(value, bool | np.bool_):  # true/false is not a number of steps
+                return _BAD
+            fv = float(value)
+            if kind is float or not math.isfinite(fv):
+                return fv
+            return int(fv) if fv == int(fv) else _BAD
+        return kind(value)
+    except (TypeError, ValueError, OverflowError):  # OverflowError: float(10**400)
+        return _BAD
 
 
 @dataclass
@@ -125,14 +228,31 @@ class Method:
             )
         return self.compute(recording_like.frames(a, b), t - a, a, params)
 
+    @property
+    def max_span(self) -> int:
+        """Most steps ``before + after`` a parameter set may ask for (see
+        :data:`MAX_WINDOW_STEPS`; methods that unpack their window get
+        :data:`MAX_UNPACKED_STEPS`)."""
+        return MAX_WINDOW_STEPS if self.compute_packed is not None else MAX_UNPACKED_STEPS
+
     def describe(self) -> dict[str, Any]:
+        """Summary, parameters (default, unit, help, accepted range), masks and presets."""
         return {
             "name": self.name,
             "summary": self.summary,
             "reference": self.reference,
             "masks": list(self.masks),
+            "max_window_steps": self.max_span,
             "params": {
-                k: {"default": p.default, "unit": p.unit, "help": p.help}
+                k: {
+                    "default": p.default,
+                    "unit": p.unit,
+                    "help": p.help,
+                    "minimum": p.minimum,
+                    "maximum": p.maximum,
+                    "choices": None if p.choices is None else list(p.choices),
+                    "range": p.range_text,
+                }
                 for k, p in self.params.items()
             },
             "presets": {k: dict(v) for k, v in self.presets.items()},
@@ -163,7 +283,8 @@ def get_method(name: str) -> Method:
 
 
 def methods() -> dict[str, dict[str, Any]]:
-    """All methods with their summary, parameters (default, unit, help), masks and presets."""
+    """All methods with their summary, parameters (default, unit, help, minimum, maximum,
+    choices and ``range`` in words), masks and presets."""
     _load_all()
     return {name: m.describe() for name, m in _REGISTRY.items()}
 
@@ -171,7 +292,13 @@ def methods() -> dict[str, dict[str, Any]]:
 def resolve_params(
     method: Method, params: Mapping[str, Any] | None = None, preset: str | None = None
 ) -> dict[str, Any]:
-    """Defaults, then the preset, then explicit values; unknown names are an error."""
+    """Defaults, then the preset, then explicit values; unknown names are an error.
+
+    Each value is checked against its parameter's range (:meth:`Param.coerce`), then the
+    combination against the window limit (:attr:`Method.max_span` steps around t): several
+    parameters in range can still add up to a window no ring holds (CFSR's history reaches
+    ``mog_frames * mog_stride`` steps back). Raises ValueError naming what is wrong.
+    """
     out = {k: p.default for k, p in method.params.items()}
     if preset is not None:
         if preset not in method.presets:
@@ -187,4 +314,17 @@ def resolve_params(
                 f"parameters: {', '.join(method.params) or 'none'}"
             )
         out[k] = method.params[k].coerce(k, v)
+    before, after = method.window(out)
+    if before + after > method.max_span:
+        changed = [
+            f"{k}={v!r}"
+            for k, v in out.items()
+            if v != method.params[k].default and _is_number(type(method.params[k].default))
+        ]
+        raise ValueError(
+            f"method {method.name!r}: these parameters need a window of {before} steps before "
+            f"t and {after} after; at most {method.max_span} steps in all "
+            f"({method.max_span / STEP_RATE_HZ:g} s)"
+            + (f" (set: {', '.join(changed)})" if changed else "")
+        )
     return out

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
 from cfsr.methods.tfa import adaptive_rate
 from cfsr.methods.tfi import tfi_rate
 from cfsr.methods.tfp import tfp_rate
@@ -126,13 +126,31 @@ register(
         summary="Spiking neural model: motion confidence, graph-cut labels, refractory, "
         "adaptive-threshold reconstruction",
         params={
-            "long_window": Param(160, "steps", "static integration window (centred)", minimum=2),
-            "max_isi": Param(200, "steps", "interval search range each side of t", minimum=1),
-            "motion_sigma": Param(
-                0.35, "log ratio", "excitation giving confidence 0.63", minimum=1e-3
+            # no packed path: the whole window is unpacked, hence the tighter limits
+            "long_window": Param(
+                160,
+                "steps",
+                "static integration window (centred)",
+                minimum=2,
+                maximum=MAX_UNPACKED_STEPS,
             ),
-            "smoothness": Param(1.0, "", "graph-cut Potts weight (0: no smoothing)", minimum=0),
-            "motion_threshold": Param(4, "intervals", "intervals integrated in motion", minimum=1),
+            "max_isi": Param(
+                200,
+                "steps",
+                "interval search range each side of t",
+                minimum=1,
+                maximum=MAX_UNPACKED_STEPS // 2,
+            ),
+            # |log ISI ratio| <= log(40,000) ~ 10.6 for any two intervals within 1 s
+            "motion_sigma": Param(
+                0.35, "log ratio", "excitation giving confidence 0.63", minimum=1e-3, maximum=20.0
+            ),
+            "smoothness": Param(
+                1.0, "", "graph-cut Potts weight (0: no smoothing)", minimum=0, maximum=1000.0
+            ),
+            "motion_threshold": Param(
+                4, "intervals", "intervals integrated in motion", minimum=1, maximum=1000
+            ),
             "refractory": Param(
                 0.5, "", "refractory fraction of the median interval", minimum=0.0, maximum=1.0
             ),

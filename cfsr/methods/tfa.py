@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr.methods._spiketimes import pixel_times, row_slab
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
 
 __all__ = ["adaptive_rate", "adaptive_rates"]
 
@@ -209,8 +209,17 @@ register(
         name="tfa",
         summary="Texture from adaptive threshold: rate over the N intervals nearest t",
         params={
-            "threshold": Param(8, "intervals", "intervals integrated per pixel", minimum=1),
-            "max_window": Param(200, "steps", "search range each side of t", minimum=1),
+            "threshold": Param(
+                8, "intervals", "intervals integrated per pixel", minimum=1, maximum=1000
+            ),
+            # no packed path: the whole window is unpacked, hence the tighter limit
+            "max_window": Param(
+                200,
+                "steps",
+                "search range each side of t",
+                minimum=1,
+                maximum=MAX_UNPACKED_STEPS // 2,
+            ),
         },
         window=lambda p: (p["max_window"], p["max_window"]),
         compute=_compute,

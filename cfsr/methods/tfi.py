@@ -15,7 +15,7 @@ from numba import njit, prange
 
 from cfsr._packed import isi_packed, stored_to_image
 from cfsr.methods._spiketimes import pixel_times, row_slab
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 
 __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
 
@@ -192,7 +192,13 @@ register(
         name="tfi",
         summary="Texture from inter-spike interval: rate = 1 / ISI containing t",
         params={
-            "max_isi": Param(400, "steps", "longest ISI searched each side of t", minimum=1),
+            "max_isi": Param(
+                400,
+                "steps",
+                "longest ISI searched each side of t",
+                minimum=1,
+                maximum=MAX_WINDOW_STEPS // 2,
+            ),
         },
         window=lambda p: (p["max_isi"], p["max_isi"]),
         compute=_compute,

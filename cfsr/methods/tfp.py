@@ -9,7 +9,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._packed import count_packed, stored_to_image
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 
 __all__ = ["tfp_rate", "tfp_rate_packed", "tfp_span", "count_spikes"]
 
@@ -96,7 +96,7 @@ register(
         name="tfp",
         summary="Texture from playback: spike count over a window / window length",
         params={
-            "window": Param(160, "steps", "window length w", minimum=1),
+            "window": Param(160, "steps", "window length w", minimum=1, maximum=MAX_WINDOW_STEPS),
             "mode": Param(
                 "trailing",
                 "",

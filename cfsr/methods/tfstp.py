@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from cfsr.methods.registry import Method, Output, Param, register
+from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
 
 __all__ = ["stp_rate"]
 
@@ -147,10 +147,22 @@ register(
         name="tfstp",
         summary="Texture from short-term plasticity: steady-state inversion of STP synapses",
         params={
-            "warmup": Param(400, "steps", "steps before t that build the synapse state", minimum=1),
+            # no packed path: the whole window is unpacked, hence the tighter limit (the
+            # state forgets its start within a few spikes, ~F steps)
+            "warmup": Param(
+                400,
+                "steps",
+                "steps before t that build the synapse state",
+                minimum=1,
+                maximum=MAX_UNPACKED_STEPS,
+            ),
             "u0": Param(0.15, "", "baseline utilisation u0", minimum=1e-6, maximum=0.999),
-            "D": Param(1.0, "steps", "recovery time constant tau_D", minimum=1e-3),
-            "F": Param(10.0, "steps", "facilitation time constant tau_F", minimum=1e-3),
+            "D": Param(
+                1.0, "steps", "recovery time constant tau_D", minimum=1e-3, maximum=40_000.0
+            ),
+            "F": Param(
+                10.0, "steps", "facilitation time constant tau_F", minimum=1e-3, maximum=40_000.0
+            ),
             "f": Param(0.15, "", "facilitation increment f", minimum=0.0, maximum=0.999),
         },
         window=lambda p: (p["warmup"], 0),

@@ -33,6 +33,21 @@ def _port(text: str) -> int:
     return port
 
 
+def _bounded(lo: float, hi: float, what: str):
+    """An argparse type for a finite float in [lo, hi] (NaN and inf refused)."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not lo <= v <= hi:  # false for NaN too
+            raise argparse.ArgumentTypeError(f"{text} is outside {lo:g}..{hi:g} {what}")
+        return v
+
+    return parse
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--replay", metavar="FILE", type=Path, help="replay a .dat recording")
@@ -56,11 +71,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder of recordings offered in the viewer; recordings are written to "
                    "DATA_DIR/recordings (default $CFSR_DATA_DIR or ~/.local/share/cfsr)")
     p.add_argument("--method", default="tfp", help="initial reconstruction method (default tfp)")
-    p.add_argument("--speed", type=float, default=1.0, help="replay speed (1 = real time)")
+    p.add_argument("--speed", type=_bounded(1e-4, 1000, "x real time"), default=1.0,
+                   help="replay speed, 1e-4..1000 (1 = real time)")
     p.add_argument("--no-loop", action="store_true", help="stop at the end of a replay")
-    p.add_argument("--max-fps", type=float, default=30.0, help="most frames/s published")
-    p.add_argument("--ring-seconds", type=float, default=0.25,
-                   help="seconds of sensor data the shared ring holds (default 0.25)")
+    p.add_argument("--max-fps", type=_bounded(0.1, 240, "frames/s"), default=30.0,
+                   help="most frames/s published, 0.1..240 (default 30)")
+    p.add_argument("--ring-seconds", type=_bounded(0.01, 10, "s"), default=0.25,
+                   help="seconds of sensor data the shared ring holds, 0.01..10 (default 0.25; "
+                   "1 s of a 400 x 250 camera is 500 MB of shared memory)")
     p.add_argument("--replay-mode", choices=("paced", "fast"), default="paced",
                    help="paced: real-time schedule (default); fast: deterministic, as fast as "
                    "the worker consumes (tests)")

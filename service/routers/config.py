@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, HTTPException
+import asyncio
+
+from fastapi import APIRouter, Depends, HTTPException, Response
 
 from service.deps import RuntimeDep, require_token
-from service.models import ConfigModel, ConfigUpdate, MethodInfo
+from service.models import ConfigModel, ConfigUpdate, MethodInfo, reject_non_finite_json
 
-router = APIRouter(tags=["config"], dependencies=[Depends(require_token)])
+router = APIRouter(
+    tags=["config"], dependencies=[Depends(require_token), Depends(reject_non_finite_json)]
+)
 
 
 @router.get("/api/methods", response_model=list[MethodInfo],
@@ -25,10 +29,19 @@ async def get_config(rt: RuntimeDep) -> dict:
 
 @router.put("/api/config", response_model=ConfigModel,
             summary="switch method / parameters / display scaling",
-            responses={422: {"description": "unknown method or invalid parameter"}})
-async def put_config(body: ConfigUpdate, rt: RuntimeDep) -> dict:
+            responses={
+                202: {"model": ConfigModel,
+                      "description": "stored and sent, but the worker has not answered yet "
+                      "(busy, e.g. compiling); `state` is pending"},
+                422: {"description": "unknown method, parameter out of range (the message "
+                      "names it and its range), or a configuration the worker could not "
+                      "apply (it keeps the previous one, which stays stored)"},
+            })
+async def put_config(body: ConfigUpdate, rt: RuntimeDep, response: Response) -> dict:
     try:
-        return rt.set_config(
+        # in a thread: it waits (a few seconds at most) for the worker's answer
+        out = await asyncio.to_thread(
+            rt.set_config,
             method=body.method,
             params=body.params,
             display=body.display.model_dump() if body.display else None,
@@ -36,3 +49,6 @@ async def put_config(body: ConfigUpdate, rt: RuntimeDep) -> dict:
         )
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from exc
+    if out.get("state") == "pending":
+        response.status_code = 202
+    return out

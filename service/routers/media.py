@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, WebSocket
 from fastapi.responses import Response, StreamingResponse
@@ -103,6 +104,23 @@ async def mjpeg(
     )
 
 
+#: a client's own rate cap, frames/s: a value outside is clamped (0 or none: no cap)
+CLIENT_FPS_RANGE = (0.1, 240.0)
+
+
+def _client_fps(value) -> float | None:
+    """A WebSocket client's ``max_fps`` (query or message), never NaN, infinite or so small
+    that its sender would sleep for ever."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    if not math.isfinite(v) or v <= 0:
+        return None
+    lo, hi = CLIENT_FPS_RANGE
+    return min(max(v, lo), hi)
+
+
 @router.websocket("/ws")
 async def ws(websocket: WebSocket) -> None:
     """Binary frame messages (see ``service.hub``), one per new frame, latest-only per client.
@@ -114,10 +132,7 @@ async def ws(websocket: WebSocket) -> None:
         return
     await websocket.accept()
     hub: FrameHub = websocket.app.state.hub
-    try:
-        max_fps = float(websocket.query_params.get("max_fps", "0")) or None
-    except ValueError:
-        max_fps = None
+    max_fps = _client_fps(websocket.query_params.get("max_fps"))
     client = hub.add(ClientQueue("ws", max_fps=max_fps, peer=str(websocket.client)))
 
     async def sender() -> None:
@@ -146,10 +161,9 @@ async def ws(websocket: WebSocket) -> None:
             if text:
                 try:
                     req = json.loads(text)
-                    if "max_fps" in req:
-                        v = float(req["max_fps"])
-                        client.max_fps = v if v > 0 else None
-                except (ValueError, TypeError):
+                    if isinstance(req, dict) and "max_fps" in req:
+                        client.max_fps = _client_fps(req["max_fps"])
+                except (ValueError, TypeError, RecursionError):
                     pass
     except WebSocketDisconnect:
         pass

@@ -17,10 +17,14 @@ from service.models import (
     SourceSelect,
     SourceStatus,
     StepRequest,
+    reject_non_finite_json,
 )
 from service.runtime import ConflictError, Runtime
 
-router = APIRouter(tags=["sources"], dependencies=[Depends(require_token)])
+# NaN/Infinity in a body is a 422 naming it (replay speed, seek seconds), never a 500
+router = APIRouter(
+    tags=["sources"], dependencies=[Depends(require_token), Depends(reject_non_finite_json)]
+)
 
 
 @router.get("/api/sources", response_model=list[SourceItem],

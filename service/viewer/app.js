@@ -26,7 +26,9 @@
     let data = null;
     try { data = await res.json(); } catch (e) { data = null; }
     if (!res.ok) {
-      const detail = data && data.detail ? (typeof data.detail === "string" ? data.detail : JSON.stringify(data.detail)) : res.statusText;
+      const d = data && data.detail;
+      const detail = !d ? res.statusText : typeof d === "string" ? d
+        : Array.isArray(d) ? d.map((e) => e.msg || JSON.stringify(e)).join("; ") : JSON.stringify(d);
       throw new Error(detail);
     }
     return data;
