@@ -98,7 +98,9 @@ class SourceCatalog:
         key = (str(e.path), problem)
         if key not in self._reported:
             self._reported.add(key)
-            log.warning("data folder: skipping %s: %s", e.path, problem)
+            # info, not warning: the listing's note is where users see it, and a start-up that
+            # fails on this very file must stay one line
+            log.info("data folder: skipping %s: %s", e.path, problem)
         return e
 
     def _describe_file(self, path: Path, id_: str, kind: str) -> CatalogEntry | None:

@@ -409,7 +409,7 @@ def test_catalog_survives_bad_files_and_reports_them(hostile_folder, caplog):
     from service.settings import Settings, SourceSpec
 
     cat = SourceCatalog(Settings(data_dir=hostile_folder, source=SourceSpec("demo")))
-    with caplog.at_level("WARNING", logger="cfsr.catalog"):
+    with caplog.at_level("INFO", logger="cfsr.catalog"):
         entries = cat.scan()
         cat.scan()  # a second scan (every GET /api/sources) logs nothing new
     good = entries["file:good.dat"]
