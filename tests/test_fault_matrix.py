@@ -200,3 +200,34 @@ def test_fault(ctx, name, row):
         httpx.get(s.url + "/api/status", timeout=30).raise_for_status()
     except httpx.HTTPError as exc:  # pragma: no cover - reported with the row's name
         raise AssertionError(f"/api/status failed after {name}: {exc}") from exc
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
+def test_worker_memory_returns_after_a_large_window_is_reverted(ctx):
+    """A large-but-valid window grows the worker's buffer; reverting it gives the memory back
+    (it used to stay at its peak: 362 MB -> 2.8 GB for good after window=100000)."""
+    s = ctx.s
+
+    def settle(window: int) -> float:
+        r = s.put("/api/config", json={"method": "tfp", "params": {"window": window}})
+        assert r.status_code in (200, 202), r.text
+        s.wait_for(lambda x: x["worker"]["applied_version"] == x["worker"]["config_version"]
+                   and x["params"].get("window") == window, timeout=120,
+                   what=f"window={window} to be applied")
+        ws_frames(s, 3, timeout=120, method="tfp")
+        time.sleep(1.0)
+        return _rss_mb(s.status()["worker"]["pid"])
+
+    base = settle(160)
+    big = settle(30_000)  # 0.75 s of steps: a buffer of about 750 MB at 400 x 250
+    back = settle(160)
+    print(f"worker RSS: {base:.0f} MB, window=30000 {big:.0f} MB, reverted {back:.0f} MB")
+    assert big > base + 300, (base, big)  # the window really took memory
+    assert back < base + 100, (base, big, back)  # and gave it back
