@@ -15,11 +15,10 @@ import sys
 from pathlib import Path
 
 import pytest
-
-import schemathesis  # noqa: E402 - in the test extra: a missing one fails, never skips
-from hypothesis import HealthCheck, settings  # noqa: E402
-from schemathesis.checks import not_a_server_error  # noqa: E402
-from schemathesis.specs.openapi.checks import (  # noqa: E402
+import schemathesis  # in the test extra: a missing one fails the tier, never skips it
+from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
+from schemathesis.specs.openapi.checks import (
     content_type_conformance,
     response_schema_conformance,
 )
