@@ -303,7 +303,8 @@ def evaluate(
     height, width : int
         Frame size in pixels.
     noise : optional
-        Simulator noise (see :class:`cfsr.simulate.Noise`), default none.
+        Simulator noise (see :class:`cfsr.simulate.Noise`); default None: each scene's own
+        (none, except the ``noisy`` scene's ``sensor`` preset); ``"none"`` turns it off.
     progress : bool or callable
         True: a tqdm bar on stderr; a callable receives a message per finished job.
 
@@ -322,8 +323,12 @@ def evaluate(
     Notes
     -----
     Display conversion is the named step :func:`cfsr.to_display` with ``gain =
-    sim.rate_scale`` for both the reconstruction and the ground truth (``sim.gt_rate``), so a
-    perfect rate estimate scores the quantisation limit of 8 bits.
+    sim.rate_scale`` for both the reconstruction and the ground truth, so a perfect rate
+    estimate scores the quantisation limit of 8 bits. The ground truth is the rate of an ideal
+    pixel (``sim.ideal_rate``: ``rate_scale`` times the scene intensity), not the noisy sensor's
+    expected rate: with fixed-pattern noise (dark current, hot pixels, threshold and gain
+    mismatch) a method is scored on how well it recovers the scene, not the noise. Without
+    fixed-pattern noise the two are equal.
     """
     from cfsr.api import reconstruct_outputs
     from cfsr.display import to_display
@@ -357,7 +362,7 @@ def evaluate(
         for scene in scene_names:
             sim = simulate(scene.lower(), steps, seed=seed, height=height, width=width, noise=noise)
             gain = sim.rate_scale
-            gts = [to_display(sim.gt_rate(t), gain=gain) for t in ts]
+            gts = [to_display(sim.ideal_rate(t), gain=gain) for t in ts]
             masks = [sim.motion_mask(t) for t in ts]
             rec = SpikeRecording.from_array(sim.spikes, meta={"gain": gain})
             del sim  # the packed copy is all the methods need

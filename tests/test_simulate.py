@@ -22,7 +22,7 @@ from cfsr.simulate import (
 )
 
 H, W = 48, 64
-MOVING = ("disk", "fan", "car", "lowlight")
+MOVING = ("disk", "fan", "car", "lowlight", "dim", "noisy", "blades")
 
 
 def test_scene_names_match_cli_list():
@@ -117,7 +117,7 @@ def test_static_counts_match_gt_rate_within_one_spike(noise):
     np.testing.assert_allclose(rate, sim.gt_rate(0), atol=1.0 / n + 1e-5)
 
 
-@pytest.mark.parametrize("name", ["disk", "car"])
+@pytest.mark.parametrize("name", ["disk", "car", "noisy", "blades"])
 def test_moving_counts_match_integrated_gt_rate(name):
     # The same bound holds for a moving scene with the GT rate summed step by step: checks
     # that gt_rate(t) is exactly what the sensor integrated at every step.

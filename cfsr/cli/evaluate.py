@@ -67,7 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int, default=250, help="frame height in pixels (250)")
     p.add_argument("--width", type=int, default=400, help="frame width in pixels (400)")
     p.add_argument(
-        "--noise", help="simulator noise: none, spcs, shot, or NAME=VALUE,... (default none)"
+        "--noise",
+        help="simulator noise: none, spcs, shot, sensor, or NAME=VALUE,... (default: each "
+        "scene's own: sensor for 'noisy', none otherwise)",
     )
     p.add_argument(
         "--reds",
@@ -107,13 +109,13 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             height=args.height,
             width=args.width,
-            noise=Noise.parse(args.noise),
+            noise=Noise.parse(args.noise) if args.noise else None,
             progress=progress,
         )
         t = rows[0]["times"] if rows else []
         title = (
             f"simulated {args.width} x {args.height}, {args.steps} steps, seed {args.seed}, "
-            f"noise {args.noise or 'none'}, times {t}; display = rate / rate_scale * 255"
+            f"noise {args.noise or 'scene default'}, times {t}; display = rate / rate_scale * 255"
         )
         per = rows
         means = summarize(rows)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 # Kept in sync with cfsr.simulate.SCENES (checked by the tests); listed here so that
 # ``cfsr --help`` does not import numba.
-SCENE_NAMES = ("disk", "fan", "car", "static", "lowlight")
+SCENE_NAMES = ("disk", "fan", "car", "static", "lowlight", "dim", "noisy", "blades")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,9 +45,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--noise",
-        help="sensor noise: a preset (none, spcs, shot) and/or NAME=VALUE items, e.g. "
+        help="sensor noise: a preset (none, spcs, shot, sensor) and/or NAME=VALUE items, e.g. "
         "'spcs' or 'spcs,electrons_per_spike=100' or 'dark_rate=0.002' "
-        "(threshold_sd, gain_sd, dark_rate, dark_sd, electrons_per_spike)",
+        "(threshold_sd, gain_sd, dark_rate, dark_sd, electrons_per_spike, hot_fraction, "
+        "hot_rate); default: the scene's own (sensor for 'noisy', none otherwise)",
     )
     p.add_argument("--start", type=int, default=0, help="scene step of the first frame (default 0)")
     p.add_argument(
@@ -72,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.gt_every < 0:
         raise ValueError(f"--gt-every must be >= 0, got {args.gt_every}")
-    noise = Noise.parse(args.noise)  # validate before any work
+    noise = Noise.parse(args.noise) if args.noise else None  # validate before any work
     scene = make_scene(name, height=args.height, width=args.width)
     out = Path(args.out)
     if out.parent and not out.parent.exists():

@@ -93,14 +93,16 @@ def _bilinear_zero(tex, v, u):  # pragma: no cover - numba
 
 @njit(parallel=True, cache=True)
 def _render_rotor(
-    out, cov, oy, ox, angles, tex, cy, cx, radius, hub, period, blade
+    out, cov, oy, ox, angles, tex, cy, cx, radius, hub, period, blade, bwidth
 ):  # pragma: no cover - numba
     """Composite a rotating textured disk (``period == 0``) or fan over ``out`` in place.
 
     ``out`` is ``(n, rh, rw)`` float32, the ROI whose top-left pixel is frame ``(oy, ox)``;
     ``angles[k]`` is the rotation (rad) at step k. A fan has blades ``blade`` rad wide repeating
-    every ``period`` rad, plus a hub of radius ``hub`` px. Edges are anti-aliased by coverage
-    ``clip(distance_to_edge + 0.5, 0, 1)``; ``cov`` (same shape, or empty) receives max coverage.
+    every ``period`` rad, plus a hub of radius ``hub`` px; with ``bwidth > 0`` each blade is
+    instead a straight bar ``bwidth`` px wide along a ray (constant width at every radius).
+    Edges are anti-aliased by coverage ``clip(distance_to_edge + 0.5, 0, 1)``; ``cov`` (same
+    shape, or empty) receives max coverage.
     """
     n, rh, rw = out.shape
     th, tw = tex.shape
@@ -129,11 +131,19 @@ def _render_rotor(
                 if period > 0.0:
                     phi = trow[j] - a
                     phi -= math.floor(phi / period) * period
-                    if phi < blade:
-                        d = min(phi, blade - phi)
+                    if bwidth > 0.0:
+                        # bar along the ray at phi = 0: perpendicular distance to its axis
+                        dphi = phi if phi < 0.5 * period else phi - period
+                        if abs(dphi) < 0.5 * math.pi:
+                            cb = _clamp01(0.5 * bwidth - r * abs(math.sin(dphi)) + 0.5)
+                        else:
+                            cb = 0.0
                     else:
-                        d = -min(phi - blade, period - phi)
-                    cb = _clamp01(d * r + 0.5)
+                        if phi < blade:
+                            d = min(phi, blade - phi)
+                        else:
+                            d = -min(phi - blade, period - phi)
+                        cb = _clamp01(d * r + 0.5)
                     ch = _clamp01(hub - r + 0.5)
                     cv *= max(cb, ch)
                     if cv <= 0.0:
@@ -206,6 +216,10 @@ class Rotor:
         Angular fraction of each blade period covered by the blade (0..1).
     hub : float
         Radius of the solid hub of a fan (pixels).
+    blade_width : float
+        0 (default): wedge-shaped blades (``blade_fraction`` of the period at every radius).
+        > 0: straight bars of this constant width in pixels (thin blades; ``blade_fraction``
+        is then ignored).
     phase : float
         Rotation at step 0 (rad).
     """
@@ -218,6 +232,7 @@ class Rotor:
     blades: int = 0
     blade_fraction: float = 0.4
     hub: float = 0.0
+    blade_width: float = 0.0
     phase: float = 0.0
     label: str = "disk"
 
@@ -253,6 +268,7 @@ class Rotor:
             float(self.hub),
             float(period),
             float(period * self.blade_fraction),
+            float(self.blade_width),
         )
 
     def describe(self) -> dict[str, Any]:
@@ -265,7 +281,10 @@ class Rotor:
             "radius_px": self.radius,
             "rim_speed_px_per_step": self.omega * self.radius,
             "blades": self.blades,
-            "blade_fraction": self.blade_fraction if self.blades else None,
+            "blade_fraction": (
+                self.blade_fraction if self.blades and not self.blade_width else None
+            ),
+            "blade_width_px": self.blade_width if self.blades and self.blade_width else None,
             "hub_px": self.hub if self.blades else None,
         }
 
@@ -348,8 +367,13 @@ class Scene:
     layers : list of Rotor or Slider
         Moving objects, composited in order.
     illumination : float
-        Relative light level (1.0 normal; ``lowlight`` uses 0.1). The simulator multiplies its
-        gain by it, so intensities stay normalised to [0, 1] while firing rates drop.
+        Relative light level (1.0 normal; ``lowlight`` and ``dim`` use 0.1). The simulator
+        multiplies its gain by it, so intensities stay normalised to [0, 1] while firing rates
+        drop.
+    noise : str, mapping or None
+        The scene's default sensor noise (a :class:`cfsr.simulate.Noise` spec, e.g.
+        ``"sensor"`` for the ``noisy`` scene); the simulator uses it when no noise is given
+        (an explicit noise, ``"none"`` included, replaces it). None: an ideal sensor.
     roi : (y0, y1, x0, x1)
         Bounding box of everything the layers can cover; empty for a static scene.
     """
@@ -361,6 +385,7 @@ class Scene:
         layers: Sequence[Layer] = (),
         *,
         illumination: float = 1.0,
+        noise: str | dict[str, float] | None = None,
         summary: str = "",
         info: dict[str, Any] | None = None,
     ) -> None:
@@ -373,6 +398,7 @@ class Scene:
         self.background = np.clip(bg, 0.0, 1.0)
         self.layers = list(layers)
         self.illumination = float(illumination)
+        self.noise = noise
         self.summary = summary
         self.info = dict(info or {})
         h, w = self.background.shape
@@ -450,6 +476,7 @@ class Scene:
             "height": self.height,
             "width": self.width,
             "illumination": self.illumination,
+            "noise": self.noise,
             "moving": self.moving,
             "roi": list(self.roi),
             "layers": [ly.describe() for ly in self.layers],
@@ -502,24 +529,86 @@ def _car_sprite(sh: int, sw: int) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(tex, np.float32), np.ascontiguousarray(alpha, np.float32)
 
 
-def _disk_scene(h: int, w: int, *, rpm: float = 2000.0, radius: float | None = None) -> Scene:
+def _disk(
+    h: int,
+    w: int,
+    *,
+    rpm: float = 2000.0,
+    radius: float | None = None,
+    name: str = "disk",
+    floor: float = 0.0,
+    illumination: float = 1.0,
+    noise: str | None = None,
+    summary: str = "",
+) -> Scene:
+    """The disk scene; ``floor`` raises the darkest intensity (both textures start there)."""
     m = min(h, w)
     r = 0.3 * m if radius is None else float(radius)
     d = 2 * math.ceil(r) + 3
     rotor = Rotor(
-        texture("camera", d, d), cy=(h - 1) / 2, cx=(w - 1) / 2, radius=r, rpm=rpm, label="disk"
+        texture("camera", d, d, lo=floor, hi=1.0),
+        cy=(h - 1) / 2,
+        cx=(w - 1) / 2,
+        radius=r,
+        rpm=rpm,
+        label="disk",
     )
-    bg = texture("brick", h, w, lo=0.05, hi=0.95)
+    bg = texture("brick", h, w, lo=max(0.05, floor), hi=0.95)
+    what = f"textured disk (camera) rotating at {rpm:g} rpm over a static brick wall"
     return Scene(
-        "disk",
+        name,
         bg,
         [rotor],
-        summary=f"textured disk (camera) rotating at {rpm:g} rpm over a static brick wall",
+        illumination=illumination,
+        noise=noise,
+        summary=f"{summary}{what}",
         info={"textures": {"background": "brick", "disk": "camera"}},
     )
 
 
-def _fan_scene(h: int, w: int, *, rpm: float = 2600.0, blades: int = 4) -> Scene:
+def _disk_scene(h: int, w: int, *, rpm: float = 2000.0, radius: float | None = None) -> Scene:
+    return _disk(h, w, rpm=rpm, radius=radius)
+
+
+def _dim_scene(
+    h: int, w: int, *, illumination: float = 0.1, rpm: float = 2000.0, radius: float | None = None
+) -> Scene:
+    # intensities in [0.1, 1] at rate_scale 0.5 * illumination: true rates 0.005..0.05 at 0.1
+    return _disk(
+        h,
+        w,
+        rpm=rpm,
+        radius=radius,
+        name="dim",
+        floor=0.1,
+        illumination=illumination,
+        summary=f"dim ({illumination:g} x light, intensity >= 0.1): ",
+    )
+
+
+def _noisy_scene(
+    h: int, w: int, *, noise: str = "sensor", rpm: float = 2000.0, radius: float | None = None
+) -> Scene:
+    return _disk(
+        h,
+        w,
+        rpm=rpm,
+        radius=radius,
+        name="noisy",
+        noise=noise,
+        summary=f"sensor noise ({noise}): ",
+    )
+
+
+def _fan_scene(
+    h: int,
+    w: int,
+    *,
+    rpm: float = 2600.0,
+    blades: int = 4,
+    blade_width: float = 0.0,
+    name: str = "fan",
+) -> Scene:
     m = min(h, w)
     r = 0.42 * m
     d = 2 * math.ceil(r) + 3
@@ -531,17 +620,27 @@ def _fan_scene(h: int, w: int, *, rpm: float = 2600.0, blades: int = 4) -> Scene
         rpm=rpm,
         blades=int(blades),
         blade_fraction=0.4,
+        blade_width=float(blade_width),
         hub=0.14 * m,
         label="fan",
     )
     bg = texture("gravel", h, w, lo=0.02, hi=0.6)
+    shape = f" ({blade_width:g} px wide blades)" if blade_width else ""
     return Scene(
-        "fan",
+        name,
         bg,
         [rotor],
-        summary=f"{blades}-blade fan rotating at {rpm:g} rpm over gravel",
+        summary=f"{blades}-blade fan{shape} rotating at {rpm:g} rpm over gravel",
         info={"textures": {"background": "gravel", "blades": "astronaut"}},
     )
+
+
+def _blades_scene(
+    h: int, w: int, *, rpm: float = 2600.0, blades: int = 4, blade_width: float = 3.0
+) -> Scene:
+    if not float(blade_width) > 0:
+        raise ValueError(f"blade_width must be > 0 pixels, got {blade_width}")
+    return _fan_scene(h, w, rpm=rpm, blades=blades, blade_width=blade_width, name="blades")
 
 
 def _car_scene(
@@ -603,6 +702,9 @@ _BUILDERS: dict[str, Callable[..., Scene]] = {
     "car": _car_scene,
     "static": _static_scene,
     "lowlight": _lowlight_scene,
+    "dim": _dim_scene,
+    "noisy": _noisy_scene,
+    "blades": _blades_scene,
 }
 
 #: Scene names with a one-line description (iterate it for the names).
@@ -612,6 +714,9 @@ SCENES: dict[str, str] = {
     "car": "textured car translating at 100 km/h (100 px/m: 0.069 px/step)",
     "static": "static scene (no motion; empty motion mask)",
     "lowlight": "the car scene at 1/10 illumination (rate_scale 0.05 by default)",
+    "dim": "the disk scene (2000 rpm) at 1/10 light: true rates 0.005-0.05 spikes/step",
+    "noisy": "the disk scene (2000 rpm) seen by a noisy sensor (noise preset 'sensor')",
+    "blades": "4 thin (3 px) blades rotating at 2600 rpm over a static background",
 }
 
 
@@ -621,14 +726,17 @@ def make_scene(name: str, height: int = 250, width: int = 400, **options: Any) -
     Parameters
     ----------
     name : str
-        One of :data:`SCENES` (``disk``, ``fan``, ``car``, ``static``, ``lowlight``).
+        One of :data:`SCENES` (``disk``, ``fan``, ``car``, ``static``, ``lowlight``, ``dim``,
+        ``noisy``, ``blades``).
     height, width : int
         Frame size in pixels (default 400 x 250, the sensor). Object sizes scale with the
         frame; speeds do not (rpm, and pixels per step for the car).
     **options
         Scene-specific overrides: ``disk(rpm=2000, radius=None)``, ``fan(rpm=2600,
-        blades=4)``, ``car(speed_kmh=100, px_per_m=100)``, ``lowlight(illumination=0.1,
-        speed_kmh=100, px_per_m=100)``.
+        blades=4, blade_width=0)``, ``car(speed_kmh=100, px_per_m=100)``,
+        ``lowlight(illumination=0.1, speed_kmh=100, px_per_m=100)``, ``dim(illumination=0.1,
+        rpm=2000, radius=None)``, ``noisy(noise="sensor", rpm=2000, radius=None)``,
+        ``blades(rpm=2600, blades=4, blade_width=3)``.
 
     Returns
     -------

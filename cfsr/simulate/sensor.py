@@ -19,9 +19,21 @@ intensity, threshold 400 -> 0.64 for white). The ``lowlight`` scene has illumina
 ``rate_scale = 0.05``.
 
 Optional noise (:class:`Noise`): SPCS-like fixed-pattern noise (per-pixel threshold mismatch,
-gain spread, dark current: a charge added every step, independent of light), and optional
-temporal photon shot noise. Everything is deterministic for a given ``seed``, whatever the
-chunk size or thread count.
+gain spread, dark current: a charge added every step, independent of light), hot pixels (a few
+pixels with a dark current far above the rest), and optional temporal photon shot noise.
+Everything is deterministic for a given ``seed``, whatever the chunk size or thread count.
+Without an explicit ``noise`` the sensor uses the scene's own (``Scene.noise``: the ``noisy``
+scene has the ``sensor`` preset, every other scene none).
+
+Sources. SPCS ("the first spiking camera simulator") comes with SCFlow: Hu et al., "Optical
+flow estimation for spiking camera" (arXiv 2110.03916); the ``spcs`` preset's values are those
+this module has always used for it. SpikingSIM (github.com/Evin-X/SpikingSIM) adds
+light-independent "inherent noise" spikes (about 0.007 per pixel-step), which our dark current
+models in integrate-and-fire form. Hu et al., "Spike stream denoising via spike camera
+simulation" (arXiv 2304.03129) derive a spike-camera noise model from the pixel circuit, with
+temporal and spatial (fixed-pattern) noise measured on a real camera; we took no numbers from
+it. Hot pixels and the ``sensor`` preset's values are our own choices, except its gain spread
+and mean dark current (SPCS); see :data:`NOISE_PRESETS` and docs/methods.md.
 
 Without shot noise the model is deterministic given the initial potential, so a static pixel's
 inter-spike interval only alternates between ``floor(1/r)`` and ``ceil(1/r)``: TFI is then
@@ -92,6 +104,14 @@ class Noise:
         electron count (normal approximation above 12 per step). 0 (default) turns it off;
         the ``shot`` preset uses 100 (an illustrative value, not a measured one), giving an
         ISI jitter of about ``1/sqrt(100) = 10 %``. Expected rates are unchanged.
+    hot_fraction : float
+        Fraction of pixels that are *hot* (ours, not in SPCS): their dark current alone makes
+        them fire at ``hot_rate`` times a uniform draw in [0.5, 1] spikes per step, whatever
+        the light. Hot pixels are drawn once from the seed (``Sensor.hot_mask``); at least one
+        pixel is hot when ``hot_fraction > 0``.
+    hot_rate : float
+        Dark firing rate of the hottest pixels in spikes per step (at most 1); required
+        (> 0) with ``hot_fraction``.
     """
 
     threshold_sd: float = 0.0
@@ -99,6 +119,8 @@ class Noise:
     dark_rate: float = 0.0
     dark_sd: float = 0.0
     electrons_per_spike: float = 0.0
+    hot_fraction: float = 0.0
+    hot_rate: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -109,6 +131,12 @@ class Noise:
             raise ValueError(f"noise threshold_sd={self.threshold_sd}: must be < 0.5 (relative)")
         if self.dark_rate >= 1:
             raise ValueError(f"noise dark_rate={self.dark_rate}: must be < 1 spike/step")
+        if self.hot_fraction > 1:
+            raise ValueError(f"noise hot_fraction={self.hot_fraction}: must be <= 1")
+        if self.hot_rate > 1:
+            raise ValueError(f"noise hot_rate={self.hot_rate}: must be <= 1 spike/step")
+        if self.hot_fraction > 0 and self.hot_rate <= 0:
+            raise ValueError("noise hot_fraction > 0 needs hot_rate > 0 (spikes/step)")
 
     @property
     def is_zero(self) -> bool:
@@ -119,8 +147,9 @@ class Noise:
 
     @classmethod
     def parse(cls, spec: str | Mapping[str, Any] | Noise | None) -> Noise:
-        """A preset name (``none``, ``spcs``), ``"NAME=VALUE,..."`` (optionally after a preset,
-        ``"spcs,dark_rate=0.01"``), a mapping, a Noise, or None (no noise)."""
+        """A preset name (``none``, ``spcs``, ``shot``, ``sensor``), ``"NAME=VALUE,..."``
+        (optionally after a preset, ``"spcs,dark_rate=0.01"``), a mapping, a Noise, or None
+        (no noise)."""
         if spec is None:
             return cls()
         if isinstance(spec, Noise):
@@ -157,6 +186,18 @@ NOISE_PRESETS: dict[str, Noise] = {
     "none": Noise(),
     "spcs": Noise(threshold_sd=3 / 400, gain_sd=0.027451, dark_rate=1 / 400, dark_sd=0.008),
     "shot": Noise(electrons_per_spike=100.0),
+    # Fixed-pattern noise of a real sensor, for the ``noisy`` scene: SPCS's gain spread and
+    # mean dark current, and our own choices for the rest (no published spike-camera values
+    # verified): threshold mismatch 3 % (4x SPCS), per-pixel dark current spread 50 %, 0.1 %
+    # hot pixels firing at 0.25-0.5 spikes/step.
+    "sensor": Noise(
+        threshold_sd=0.03,
+        gain_sd=0.027451,
+        dark_rate=1 / 400,
+        dark_sd=0.5,
+        hot_fraction=0.001,
+        hot_rate=0.5,
+    ),
 }
 
 
@@ -285,7 +326,8 @@ class Sensor:
     threshold : float
         Nominal threshold (charge units), default 1.0.
     noise : Noise, str, mapping or None
-        Fixed-pattern noise (see :class:`Noise`); None for an ideal sensor.
+        Sensor noise (see :class:`Noise`); None: the scene's own (``scene.noise``, an ideal
+        sensor for every scene but ``noisy``); ``"none"`` for an ideal sensor whatever the scene.
     start : int
         Scene step of the first frame read (so ``read`` returns steps ``start, start+1, ...``).
     """
@@ -314,7 +356,7 @@ class Sensor:
         self.seed = int(seed)
         self.gain = gain
         self.threshold = threshold
-        self.noise = Noise.parse(noise)
+        self.noise = Noise.parse(noise if noise is not None else getattr(scene, "noise", None))
         self.start = int(start)
         self.t = int(start)  # scene step of the next frame
         h, w = scene.shape
@@ -333,6 +375,14 @@ class Sensor:
         if nz.dark_rate and nz.dark_sd:
             dmap *= 1.0 + nz.dark_sd * rng.standard_normal((h, w))
             np.maximum(dmap, 0.0, out=dmap)
+        hot = np.zeros((h, w), bool)
+        if nz.hot_fraction:  # drawn last, so the other maps do not depend on it
+            k = min(h * w, max(1, round(nz.hot_fraction * h * w)))
+            idx = rng.choice(h * w, size=k, replace=False)
+            rates = nz.hot_rate * rng.uniform(0.5, 1.0, size=k)
+            hot.ravel()[idx] = True
+            dmap.ravel()[idx] += rates * thr.ravel()[idx]  # in darkness: `rates` spikes/step
+        self.hot_mask = hot
         self.threshold_map = thr
         self.gain_map = gmap
         self.dark_map = dmap
@@ -452,6 +502,15 @@ class Simulation:
         """Expected firing rate at frame ``t`` (spikes/step, float32), dark current included."""
         return self.sensor.rate_from_intensity(self.gt_image(t))
 
+    def ideal_rate(self, t: int) -> np.ndarray:
+        """Rate of an ideal (noise-free) pixel at frame ``t``: ``clip(rate_scale * I, 0, 1)``.
+
+        The evaluation's ground truth: the scene, not the sensor's fixed pattern (equal to
+        :meth:`gt_rate` without fixed-pattern noise).
+        """
+        r = self.rate_scale * self.gt_image(t).astype(np.float64)
+        return np.clip(r, 0.0, 1.0).astype(np.float32)
+
     def motion_mask(self, t: int) -> np.ndarray:
         """True motion mask at frame ``t`` (bool ``(H, W)``)."""
         return self.scene.motion_mask(self.start + self._check(t))
@@ -498,7 +557,9 @@ def simulate(
     threshold : float
         Nominal threshold (default 1.0).
     noise : Noise, str, mapping or None
-        ``None`` (ideal), ``"spcs"`` (SPCS-like fixed-pattern noise) or ``"NAME=VALUE,..."``.
+        ``None`` (the scene's own: ideal for all but ``noisy``), ``"none"`` (ideal),
+        ``"spcs"`` (SPCS-like fixed-pattern noise), ``"sensor"``, ``"shot"`` or
+        ``"NAME=VALUE,..."``.
     start : int
         Scene step of frame 0.
     progress : callable, optional
