@@ -13,7 +13,7 @@ from numba import njit, prange
 
 from cfsr.layout import Layout
 
-__all__ = ["LANES", "count_packed", "isi_packed", "stored_to_image"]
+__all__ = ["LANES", "count_packed", "isi_packed", "isi_packed_at", "stored_to_image"]
 
 # LANES[v] holds bit k of byte v in byte-lane k of a uint64, so summing LANES over frames
 # counts 8 pixels at once (SWAR); lanes are spilled to the totals before they reach 255.
@@ -65,49 +65,60 @@ def _bit(packed, t, p):  # pragma: no cover - numba
     return (packed[t, p >> 3] >> (p & 7)) & 1
 
 
-@njit(parallel=True, cache=True)
-def _isi_kernel(packed, c, lo, hi, out):  # pragma: no cover - numba
-    # Same rule as cfsr.methods.tfi._isi_one, reading bits in place.
-    npix = out.shape[0]
-    for p in prange(npix):
-        prev = -1
-        i = c
+@njit(cache=True, inline="always")
+def _isi_bits(packed, p, c, lo, hi):  # pragma: no cover - numba
+    # Same rule as cfsr.methods.tfi._isi_one, reading the bits of stored pixel p in place.
+    prev = -1
+    i = c
+    while i >= lo:
+        if _bit(packed, i, p):
+            prev = i
+            break
+        i -= 1
+    nxt = -1
+    i = c + 1
+    while i < hi:
+        if _bit(packed, i, p):
+            nxt = i
+            break
+        i += 1
+    if prev >= 0 and nxt >= 0:
+        return nxt - prev
+    if prev >= 0:
+        pp = -1
+        i = prev - 1
         while i >= lo:
             if _bit(packed, i, p):
-                prev = i
+                pp = i
                 break
             i -= 1
-        nxt = -1
-        i = c + 1
+        bound = hi - prev
+        return max(bound, prev - pp) if pp >= 0 else bound
+    if nxt >= 0:
+        nn = -1
+        i = nxt + 1
         while i < hi:
             if _bit(packed, i, p):
-                nxt = i
+                nn = i
                 break
             i += 1
-        if prev >= 0 and nxt >= 0:
-            out[p] = nxt - prev
-        elif prev >= 0:
-            pp = -1
-            i = prev - 1
-            while i >= lo:
-                if _bit(packed, i, p):
-                    pp = i
-                    break
-                i -= 1
-            bound = hi - prev
-            out[p] = max(bound, prev - pp) if pp >= 0 else bound
-        elif nxt >= 0:
-            nn = -1
-            i = nxt + 1
-            while i < hi:
-                if _bit(packed, i, p):
-                    nn = i
-                    break
-                i += 1
-            bound = nxt - lo + 1
-            out[p] = max(bound, nn - nxt) if nn >= 0 else bound
-        else:
-            out[p] = hi - lo + 1
+        bound = nxt - lo + 1
+        return max(bound, nn - nxt) if nn >= 0 else bound
+    return hi - lo + 1
+
+
+@njit(parallel=True, cache=True)
+def _isi_kernel(packed, c, lo, hi, out):  # pragma: no cover - numba
+    npix = out.shape[0]
+    for p in prange(npix):
+        out[p] = _isi_bits(packed, p, c, lo, hi)
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _isi_at_kernel(packed, pixels, c, lo, hi, out):  # pragma: no cover - numba
+    for j in prange(pixels.shape[0]):
+        out[j] = _isi_bits(packed, pixels[j], c, lo, hi)
     return out
 
 
@@ -116,6 +127,17 @@ def isi_packed(packed: np.ndarray, center: int, lo: int, hi: int) -> np.ndarray:
     packed = np.ascontiguousarray(packed, dtype=np.uint8)
     out = np.empty(packed.shape[1] * 8, np.int32)
     return _isi_kernel(packed, center, lo, hi, out)
+
+
+def isi_packed_at(
+    packed: np.ndarray, pixels: np.ndarray, center: int, lo: int, hi: int
+) -> np.ndarray:
+    """:func:`isi_packed` for the stored pixel indices ``pixels`` only (int32, same order):
+    the few pixels a caller needs cost their own bit reads, not a whole-frame pass."""
+    packed = np.ascontiguousarray(packed, dtype=np.uint8)
+    px = np.ascontiguousarray(pixels, dtype=np.int64)
+    out = np.empty(px.shape[0], np.int32)
+    return _isi_at_kernel(packed, px, int(center), int(lo), int(hi), out)
 
 
 def stored_to_image(flat: np.ndarray, layout: Layout) -> np.ndarray:

@@ -16,12 +16,12 @@ import pytest
 import cfsr
 from cfsr._words import PackedWindow
 from cfsr.methods import cfsr_fine as cf
-from cfsr.methods.csr import csr_frames
+from cfsr.methods.csr import csr_frames, static_length
 from cfsr.methods.daisi import daisi_strength
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import get_method, resolve_params
 from cfsr.methods.tfi import tfi_rate
-from cfsr.methods.tfp import tfp_rate
+from cfsr.methods.tfp import static_rate, tfp_rate
 
 
 def _params(**kw):
@@ -49,16 +49,27 @@ def test_history_scan_equals_stand_alone_kernels(trial):
         tfp_window=int(rng.integers(1, 200)),
         tfp_mode=("trailing", "centred")[trial % 2],
         daisi_span=int(rng.integers(0, 7)),
+        static_estimator=("isi", "tfp")[(trial // 2) % 2],
+        static_span=int(rng.integers(0, 200)) * (trial % 3 == 0),
+        mog_estimator=("tfp", "isi")[trial % 4 == 3],
     )
     c = int(rng.integers(0, n))
     got = cf._history(PackedWindow.from_frames(s), c, p)
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     cs = [x for x in cs if x >= 0]
-    rates, masks, _ = csr_frames(s, cs, {**p, "tfp_window": p["mog_window"]})
+    hp = {**p, "tfp_window": p["mog_window"], "static_span": 0}
+    rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
     np.testing.assert_array_equal(got["rates"], rates)
     np.testing.assert_array_equal(got["coarse"], masks[-1])
     np.testing.assert_array_equal(got["tfi"](), tfi_rate(s, c, max_isi=p["max_isi"]))
-    want_tfp = tfp_rate(s, c, window=p["tfp_window"], mode=p["tfp_mode"])
+    want_tfp = static_rate(
+        s,
+        c,
+        window=static_length(p),
+        mode=p["tfp_mode"],
+        estimator=p["static_estimator"],
+        max_isi=p["max_isi"],
+    )
     np.testing.assert_array_equal(got["tfp"], want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
     np.testing.assert_array_equal(got["daisi"], want_d)
@@ -91,18 +102,24 @@ def _static_spikes(steps=900, h=24, w=36, seed=0):
     return out
 
 
-def test_static_window_is_the_tfp_path_adaptive_or_full():
+@pytest.mark.parametrize("est", ["isi", "tfp"])
+def test_static_window_is_the_tfp_path_adaptive_or_full(est):
     s = _static_spikes()
-    p = _params()
+    p = _params(static_estimator=est)
     t = 700
-    before, _ = get_method("cfsr").window(p)
     for adaptive in (True, False):
-        r, masks = cfsr.reconstruct(s, "cfsr", [t], return_masks=True, adaptive=adaptive)
+        r, masks = cfsr.reconstruct(
+            s, "cfsr", [t], return_masks=True, adaptive=adaptive, static_estimator=est
+        )
         assert not masks["fine"].any() and not masks["coarse"].any()
-        want = np.clip(tfp_rate(s, t, window=p["tfp_window"], mode=p["tfp_mode"]), 0, 1)
-        np.testing.assert_array_equal(r[0], want)
-    a = cfsr.reconstruct(s, "cfsr", [t], adaptive=True)
-    f = cfsr.reconstruct(s, "cfsr", [t], adaptive=False)
+        want = static_rate(
+            s, t, window=p["tfp_window"], mode=p["tfp_mode"], estimator=est, max_isi=p["max_isi"]
+        )
+        if est == "tfp":
+            np.testing.assert_array_equal(want, tfp_rate(s, t, window=p["tfp_window"]))
+        np.testing.assert_array_equal(r[0], np.clip(want, 0, 1))
+    a = cfsr.reconstruct(s, "cfsr", [t], adaptive=True, static_estimator=est)
+    f = cfsr.reconstruct(s, "cfsr", [t], adaptive=False, static_estimator=est)
     np.testing.assert_array_equal(a, f)
 
 
@@ -176,11 +193,19 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
         got = cf._history(PackedWindow.from_frames(s), c, p)
     assert not got["coarse"].any()
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
-    rates, masks, _ = csr_frames(s, cs, {**p, "tfp_window": p["mog_window"]})
+    hp = {**p, "tfp_window": p["mog_window"], "static_span": 0}
+    rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
     assert not masks.any()
     np.testing.assert_array_equal(got["rates"], rates)
     np.testing.assert_array_equal(got["tfi"](), tfi_rate(s, c, max_isi=p["max_isi"]))
-    want_tfp = tfp_rate(s, c, window=p["tfp_window"], mode=p["tfp_mode"])
+    want_tfp = static_rate(
+        s,
+        c,
+        window=static_length(p),
+        mode=p["tfp_mode"],
+        estimator=p["static_estimator"],
+        max_isi=p["max_isi"],
+    )
     np.testing.assert_array_equal(got["tfp"], want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
     np.testing.assert_array_equal(got["daisi"], want_d)

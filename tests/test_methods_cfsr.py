@@ -278,15 +278,22 @@ def test_registry_names_presets_and_masks():
             assert p["unit"] is not None and p["help"], (name, k)
 
 
-def test_csr_uses_tfi_on_dynamic_and_tfp_on_static():
+@pytest.mark.parametrize("est", ["tfp", "isi"])
+def test_csr_uses_tfi_on_dynamic_and_tfp_on_static(est):
+    from cfsr.methods.tfp import static_rate
+
     spikes, truth = moving_bars(steps=500)
     t = 450
-    rate, masks = cfsr.reconstruct(spikes, "csr", [t], theta=3, return_masks=True)
+    rate, masks = cfsr.reconstruct(
+        spikes, "csr", [t], theta=3, return_masks=True, static_estimator=est
+    )
     m = masks["coarse"][0]
     assert m.any() and (~m).any()
     tfi = cfsr.reconstruct(spikes, "tfi", [t], max_isi=200)[0]
     np.testing.assert_array_equal(rate[0][m], tfi[m])
     tfp = cfsr.reconstruct(spikes, "tfp", [t], window=32, mode="centred")[0]
+    if est == "isi":
+        tfp = static_rate(spikes, t, window=32, mode="centred", estimator="isi", max_isi=200)
     ratio = rate[0][~m] / np.maximum(tfp[~m], 1e-9)
     assert np.allclose(ratio, ratio[0], rtol=1e-4)  # one ATSR scale for the static region
     assert 0.8 < ratio[0] < 1.25
@@ -300,10 +307,16 @@ def test_cfsr_masks_and_static_skip():
     inter = (fine & truth[t]).sum() / (fine | truth[t]).sum()
     assert inter > 0.7
     assert rate.dtype == np.float32 and np.isfinite(rate).all()
-    # a static scene: no dynamic pixel, the output is the plain TFP of the static region
+    # a static scene: no dynamic pixel, the output is the plain static estimate (isi by
+    # default, the paper's TFP with static_estimator=tfp)
+    from cfsr.methods.tfp import static_rate
+
     static = if_spikes(np.linspace(0.1, 0.9, 24 * 48).reshape(24, 48), 800)
     r, m = cfsr.reconstruct(static, "cfsr", [700], return_masks=True)
     assert not m["coarse"].any() and not m["fine"].any()
+    want = static_rate(static, 700, window=160, estimator="isi", max_isi=200)
+    np.testing.assert_array_equal(r[0], want)
+    r = cfsr.reconstruct(static, "cfsr", [700], static_estimator="tfp")
     np.testing.assert_array_equal(r[0], cfsr.reconstruct(static, "tfp", [700], window=160)[0])
 
 

@@ -12,7 +12,7 @@ from cfsr._words import PackedWindow
 from cfsr.layout import Layout
 from cfsr.methods import cfsr_fine as cf
 from cfsr.methods.staticgate import span_counts, static_gate
-from cfsr.methods.tfp import count_spikes, tfp_rate
+from cfsr.methods.tfp import count_spikes, static_rate, tfp_rate
 
 
 def _integrate_and_fire(rate: np.ndarray, steps: int, seed: int = 0) -> np.ndarray:
@@ -90,11 +90,19 @@ def test_cfsr_takes_the_gate_on_a_static_window_and_equals_the_full_pipeline(mon
         mp.setattr(cf, "_history", no_history)
         got, mg = cfsr.reconstruct(s, "cfsr", [t], return_masks=True)
     np.testing.assert_array_equal(got, full)
-    np.testing.assert_array_equal(got[0], np.clip(tfp_rate(s, t, window=160), 0, 1))
+    want = static_rate(s, t, window=160, estimator="isi", max_isi=200)  # the default estimator
+    np.testing.assert_array_equal(got[0], np.clip(want, 0, 1))
     assert not mg["fine"].any() and not mg["coarse"].any()
-    # another TFP span than the gate's: the output is still that TFP
-    got = cfsr.reconstruct(s, "cfsr", [t], tfp_window=40, tfp_mode="centred")
-    np.testing.assert_array_equal(got[0], tfp_rate(s, t, window=40, mode="centred"))
+    # the paper's TFP
+    got = cfsr.reconstruct(s, "cfsr", [t], static_estimator="tfp")
+    np.testing.assert_array_equal(got[0], np.clip(tfp_rate(s, t, window=160), 0, 1))
+    # another TFP span than the gate's: the output is still that span's static estimate
+    for est in ("tfp", "isi"):
+        got = cfsr.reconstruct(
+            s, "cfsr", [t], tfp_window=40, tfp_mode="centred", static_estimator=est
+        )
+        want = static_rate(s, t, window=40, mode="centred", estimator=est, max_isi=200)
+        np.testing.assert_array_equal(got[0], want)
 
 
 def test_a_moving_scene_or_a_gate_switched_off_takes_the_whole_pipeline(monkeypatch):
@@ -113,7 +121,6 @@ def test_a_moving_scene_or_a_gate_switched_off_takes_the_whole_pipeline(monkeypa
     assert calls == [1]
     cfsr.reconstruct(_static(), "cfsr", [700], static_tol=-1)
     assert calls == [1, 1]
-
 
 
 @pytest.mark.parametrize("mode", ["trailing", "centred"])

@@ -60,15 +60,15 @@ from cfsr._words import (
     row_words,
 )
 from cfsr.methods.atsr import atsr_fuse, atsr_fuse_isi
-from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window
+from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window, static_length
 from cfsr.methods.daisi import daisi_from_times, log_table
 from cfsr.methods.distinction import distinct_in_words
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
-from cfsr.methods.staticgate import span_counts, static_gate
-from cfsr.methods.tfp import tfp_span
+from cfsr.methods.staticgate import span_counts, span_isi_rate, static_gate
+from cfsr.methods.tfp import STATIC_ESTIMATORS, span_rate, tfp_span
 
 __all__ = ["fine_mask", "fine_stage", "cfsr_window"]
 
@@ -94,6 +94,16 @@ FINE_PARAMS: dict[str, Param] = {
         "TFP window w of the CSR frames fed to MOG",
         minimum=1,
         maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    # MOG compares each pixel with its own history, so the frames' quantisation noise is
+    # stationary and phi0 is sized for it (the quantum below); the isi rule makes the frames
+    # sharper but moves a mover's edge pixels (first-to-last spike spans straddle it), which
+    # cost fine-mask IoU and motion PSNR on the simulator (docs/methods.md)
+    "mog_estimator": Param(
+        "tfp",
+        "",
+        "rate rule of the CSR frames fed to MOG: tfp (Eq. 4) or isi (as static_estimator)",
+        choices=STATIC_ESTIMATORS,
     ),
     "mog_history": Param(
         0, "frames", "MOG history length (0: mog_frames)", minimum=0, maximum=10_000
@@ -183,6 +193,7 @@ FINE_PARAMS: dict[str, Param] = {
 FINE_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
         **CSR_PRESETS["paper"],
+        "mog_estimator": "tfp",
         "phi0": 50.0,
         "phi": 4.0,
         "daisi_span": 0,
@@ -191,14 +202,14 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
         "pm_guide": 0,
         "pm_sigma": 0.0,
     },
-    "simulated": {**CSR_PRESETS["simulated"]},
+    "simulated": {**CSR_PRESETS["simulated"], "mog_estimator": "tfp"},
 }
 
 
 def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
     """Steps before/after t that one CFSR frame needs."""
     cb, ca = csr_window(p)  # the static TFP at t
-    hb, ha = csr_window({**p, "tfp_window": p["mog_window"]})  # each MOG history frame
+    hb, ha = csr_window({**p, "tfp_window": p["mog_window"], "static_span": 0})  # MOG history
     pm = p["pm_step"] * p["pm_count"]
     reach = p["max_isi"]
     before = max(
@@ -206,7 +217,7 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
     )
     after = max(ca, ha, pm + reach, p["daisi_span"] + reach)
     if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
-        _, tfp_end = tfp_span(0, 1 << 62, p["tfp_window"], p["tfp_mode"])  # steps after 0, +1
+        _, tfp_end = tfp_span(0, 1 << 62, static_length(p), p["tfp_mode"])  # steps after 0, +1
         before = max(before, 2 * p["static_window"] - tfp_end)
     return before, after
 
@@ -293,6 +304,9 @@ def _static_kernel(
     d_lo,
     d_hi,
     logs,
+    isi_est,
+    cents,
+    m,
     ub,
     tfp,
     daisi,
@@ -306,10 +320,14 @@ def _static_kernel(
     ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
     the TFP rates ``tfp[j]`` (Eq. 4: spikes in ``[bounds[ia[j]], bounds[ib[j]])`` over the
     window's length; the windows of the history frames and of t share edges, so each distinct
-    edge is counted once); DAISI at t. The words stay in ``store[y]`` (pixel ``x`` of row ``y``
-    at ``bases[y, 0] + bases[y, 1] * x``) for the second pass.
+    edge is counted once), or where ``isi_est[j]`` the ``isi`` static rate over the same spans
+    (:func:`cfsr.methods.tfp.span_rate`, first and last spike by two bit scans; the TFI at
+    ``cents[j]``, ``m`` steps each side, below two spikes); DAISI at t. The words stay in
+    ``store[y]`` (pixel ``x`` of row ``y`` at ``bases[y, 0] + bases[y, 1] * x``) for the
+    second pass.
     """
     h, w = ub.shape
+    n_all = packed.shape[0]
     n_win = ia.shape[0]
     nb = bounds.shape[0]
     lens = np.empty(n_win, np.float64)
@@ -332,7 +350,19 @@ def _static_kernel(
             for i in range(nb):
                 before[i] = count_range(words, r, lo, prefix, lo, bounds[i])
             for j in range(n_win):
-                tfp[j, y, x] = np.float32((before[ib[j]] - before[ia[j]]) / lens[j])
+                cnt = before[ib[j]] - before[ia[j]]
+                if isi_est[j] and cnt >= 2:
+                    sa = bounds[ia[j]]
+                    sb = bounds[ib[j]]
+                    first = next_spike(words, r, lo, sa, sb)
+                    last = prev_spike(words, r, lo, sb - 1, sa)
+                    tfp[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
+                elif isi_est[j]:  # fewer than two spikes in the span: the TFI at its step
+                    e = cents[j]
+                    iv = _isi_words(words, r, lo, e, max(0, e - m), min(n_all, e + m + 1))
+                    tfp[j, y, x] = np.float32(1.0 / iv)
+                else:
+                    tfp[j, y, x] = np.float32(cnt / lens[j])
             daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs)
 
 
@@ -455,7 +485,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     spans = [tfp_span(int(e), n, p["mog_window"], p["tfp_mode"]) for e in ends]
     ta = np.array([a for a, _ in spans], np.int64)
     tb = np.array([b for _, b in spans], np.int64)
-    pa, pb = tfp_span(center, n, p["tfp_window"], p["tfp_mode"])
+    pa, pb = tfp_span(center, n, static_length(p), p["tfp_mode"])
     d_lo, d_hi = max(0, center - dspan - m), min(n, center + dspan + m + 1)
     u_lo, u_hi = max(0, int(ends[0]) - span + 1), int(ends[-1]) + 1
     # the words cover both passes (the second reads TFI intervals up to max_isi around ends)
@@ -466,6 +496,10 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     wins = np.concatenate([np.stack([ta, tb], 1), [[pa, pb]]]).astype(np.int64)
     bounds, inv = np.unique(wins, return_inverse=True)
     inv = inv.reshape(wins.shape)
+    # which windows take the isi rule: the history frames' (MOG's input) and the one at t
+    isi_win = np.zeros(k + 1, np.bool_)
+    isi_win[:k] = p.get("mog_estimator", "tfp") == "isi"
+    isi_win[k] = p.get("static_estimator", "tfp") == "isi"
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
@@ -488,6 +522,9 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
         d_lo,
         d_hi,
         log_table(d_hi - d_lo),
+        isi_win,
+        np.append(ends, center).astype(np.int64),
+        m,
         ub,
         tfps,
         daisi,
@@ -497,7 +534,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
         return {
-            "rates": tfps[:k],  # TFP rates, in [0, 1] already (count <= window length)
+            "rates": tfps[:k],  # static rates, in [0, 1] already
             "coarse": np.zeros((h, w), bool),
             "tfi": lambda: _tfi_at(src, center, m),
             "tfp": tfp,
@@ -556,11 +593,14 @@ def fine_stage(
     n, h, w = src.n, src.h, src.w
     adaptive = bool(p.get("adaptive", True))
     # 0. static gate: counts unchanged over the last two spans -> the TFP, nothing else to do
-    pa, pb = tfp_span(center, n, p["tfp_window"], p["tfp_mode"])
+    pa, pb = tfp_span(center, n, static_length(p), p["tfp_mode"])
     gate = static_gate(src, pb, p["static_window"], p["static_tol"]) if adaptive else None
     if gate is not None:
-        counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
-        tfp = counts / np.float32(max(1, pb - pa))
+        if p.get("static_estimator", "tfp") == "isi":  # below two spikes: the TFI at t
+            tfp = span_isi_rate(src, pa, pb, center=center, max_isi=int(p["max_isi"]))
+        else:
+            counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
+            tfp = counts / np.float32(max(1, pb - pa))
         none = np.zeros((h, w), bool)
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), {"coarse": none, "fine": none.copy()}
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP

@@ -1,4 +1,5 @@
-"""The static gate: a window whose spike counts did not change is output as TFP at once.
+"""The static gate: a window whose spike counts did not change is output as its static estimate
+(TFP, or the ``isi`` rate of :func:`span_isi_rate`) at once.
 
 CFSR's coarse stage proves a pixel static by its distinct ISIs (Eq. 5) over the union of the K
 history frames' distinction windows (~650 steps at the defaults; with the margins the history
@@ -23,8 +24,9 @@ from numba import njit, prange
 
 from cfsr._packed import count_packed
 from cfsr._words import PackedWindow
+from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
 
-__all__ = ["span_counts", "static_gate"]
+__all__ = ["span_counts", "span_isi_rate", "static_gate"]
 
 
 def _stored(src: PackedWindow, flat: np.ndarray) -> np.ndarray:
@@ -34,17 +36,38 @@ def _stored(src: PackedWindow, flat: np.ndarray) -> np.ndarray:
     return flat[: src.h * stored_width].reshape(src.h, stored_width)[:, : src.w]
 
 
-def _upright(src: PackedWindow, stored: np.ndarray) -> np.ndarray:
-    """A :func:`_stored` view -> the upright int32 image."""
+def _upright(src: PackedWindow, stored: np.ndarray, dtype=np.int32) -> np.ndarray:
+    """A :func:`_stored` view -> the upright image (a new ``dtype`` array)."""
     _, _, flipud, _, dx = (int(v) for v in src.geo)
     img = stored[:, ::-1] if dx < 0 else stored
-    return (img[::-1] if flipud else img).astype(np.int32)
+    return (img[::-1] if flipud else img).astype(dtype)
 
 
 def span_counts(src: PackedWindow, a: int, b: int) -> np.ndarray:
     """Spikes per pixel in steps ``[a, b)`` of ``src``, upright int32 ``(H, W)``, counted on
     the packed bytes (:func:`cfsr._packed.count_packed`, no unpacking)."""
     return _upright(src, _stored(src, count_packed(src.packed, a, b)))
+
+
+def span_isi_rate(
+    src: PackedWindow,
+    a: int,
+    b: int,
+    *,
+    mark: bool = False,
+    center: int | None = None,
+    max_isi: int = 200,
+) -> np.ndarray:
+    """The ``isi`` span rate (:func:`cfsr.methods.tfp.span_rate`) over steps ``[a, b)`` of
+    ``src``, upright float32 ``(H, W)`` spikes per step in [0, 1], from the packed bytes: what
+    a passing gate outputs when the static estimator is ``isi``. Pixels with fewer than two
+    spikes in the span get -1 when ``mark``, or, given ``center``, the TFI at ``center``
+    (``max_isi`` steps each side; :func:`cfsr.methods.tfp.static_rate`'s rule)."""
+    flat = isi_span_stored(src.packed, a, b, mark=mark or center is not None)
+    if center is not None:
+        sw = int(src.geo[0])
+        fill_sparse_stored(flat, src.packed, src.h, sw, src.w, int(center), int(max_isi))
+    return _upright(src, _stored(src, flat), np.float32)
 
 
 @njit(parallel=True, cache=True)
