@@ -44,7 +44,8 @@ def main() -> int:
     for i, t in enumerate(times):
         m = {k: v[i] for k, v in masks.items()}
         tiles.append(overlay(rates[i], m, gain))
-        report.append({"step": t, **{f"{k}_share": round(float(v.mean()), 4) for k, v in m.items()}})
+        shares = {f"{k}_share": round(float(v.mean()), 4) for k, v in m.items()}
+        report.append({"step": t, **shares})
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(tiles, axis=1)).save(args.out)
     print(json.dumps(report, indent=1))
