@@ -213,6 +213,13 @@ def _fill_sparse(rate: np.ndarray, tfi) -> np.ndarray:
     return rate
 
 
+def _check_isi_estimator(estimator: str, window: int) -> None:
+    if estimator != "isi":
+        raise ValueError(f"estimator must be one of {STATIC_ESTIMATORS}, got {estimator!r}")
+    if window < 1:
+        raise ValueError(f"window must be >= 1 step, got {window}")
+
+
 def static_rate(
     spikes: np.ndarray,
     center: int,
@@ -234,10 +241,7 @@ def static_rate(
     """
     if estimator == "tfp":
         return tfp_rate(spikes, center, window=window, mode=mode)
-    if estimator != "isi":
-        raise ValueError(f"estimator must be one of {STATIC_ESTIMATORS}, got {estimator!r}")
-    if window < 1:
-        raise ValueError(f"window must be >= 1 step, got {window}")
+    _check_isi_estimator(estimator, window)
     a, b = tfp_span(center, spikes.shape[0], window, mode)
     from cfsr.methods.tfi import tfi_rate
 
@@ -261,10 +265,7 @@ def static_rate_packed(
     """:func:`static_rate` from packed frames ``(n, frame_bytes)`` without unpacking."""
     if estimator == "tfp":
         return tfp_rate_packed(packed, layout, center, window=window, mode=mode)
-    if estimator != "isi":
-        raise ValueError(f"estimator must be one of {STATIC_ESTIMATORS}, got {estimator!r}")
-    if window < 1:
-        raise ValueError(f"window must be >= 1 step, got {window}")
+    _check_isi_estimator(estimator, window)
     n = packed.shape[0]
     a, b = tfp_span(center, n, window, mode)
     flat = isi_span_stored(packed, a, b, mark=True)
