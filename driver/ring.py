@@ -47,6 +47,17 @@ _EMPTY, _WRITING = -2, -1
 _names = count()
 
 
+#: name prefix of the spike ring's shared-memory file
+RING_PREFIX = "cfsr-ring"
+
+
+def shared_dirs() -> list[Path]:
+    """Every folder :func:`ring_dir` may pick: where a killed server's files can be."""
+    env = os.environ.get("CFSR_RING_DIR")
+    dirs = [Path(env)] if env else []
+    return [*dirs, Path("/dev/shm"), Path(tempfile.gettempdir())]
+
+
 def ring_dir(nbytes: int) -> Path:
     """Where ring files live: ``$CFSR_RING_DIR``, else ``/dev/shm`` if it has room, else tmp."""
     env = os.environ.get("CFSR_RING_DIR")
@@ -200,7 +211,7 @@ class SpikeRing:
                 f"{n_slots}, {slot_frames}, {frame_bytes}"
             )
         size = cls.nbytes_for(n_slots, slot_frames, frame_bytes)
-        path, mm = create_shared_file("cfsr-ring", size, directory)
+        path, mm = create_shared_file(RING_PREFIX, size, directory)
         hdr = np.frombuffer(mm, np.int64, _HEADER_BYTES // 8, 0)
         hdr[_H_NSLOTS], hdr[_H_SLOTFRAMES], hdr[_H_FRAMEBYTES] = n_slots, slot_frames, frame_bytes
         hdr[_H_BLOCKING] = int(blocking)

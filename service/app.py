@@ -21,6 +21,7 @@ from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.staticfiles import StaticFiles
 
+from cfsr.cli import version
 from service.hub import FrameHub
 from service.models import reject_non_finite_json
 from service.runtime import Runtime
@@ -65,7 +66,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         # every body, on every router, is refused with 422 if it holds NaN/Infinity/1e999
         dependencies=[Depends(reject_non_finite_json)],
         title="CFSR live",
-        version=_version(),
+        version=version(),
         summary="Live spike-camera reconstruction: sources, worker, frames, masks, metrics.",
         description=(
             "Units: time in steps (1 step = 25 us at 40 kHz), rates in spikes/step. "
@@ -105,12 +106,3 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     else:
         log.warning("viewer folder %s is missing; only the API is served", vd)
     return app
-
-
-def _version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("cfsr")
-    except Exception:  # noqa: BLE001
-        return "0"

@@ -16,6 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+#: name prefix of the latest-frame slot's shared-memory file
+FRAME_PREFIX = "cfsr-frame"
+
 __all__ = ["FrameSlot", "SlotFrame", "STAT_FIELDS"]
 
 _MAGIC = 0x544F4C53_4D415246  # "FRAMSLOT"
@@ -89,7 +92,7 @@ class FrameSlot:
         size = _PAYLOAD_OFF + 3 * max_pixels
         from driver.ring import create_shared_file
 
-        path, mm = create_shared_file("cfsr-frame", size, directory)
+        path, mm = create_shared_file(FRAME_PREFIX, size, directory)
         hdr = np.frombuffer(mm, np.int64, _HDR // 8, 0)
         hdr[_MAXPIX] = max_pixels
         hdr[_M] = _MAGIC

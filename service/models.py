@@ -11,6 +11,8 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, BeforeValidator, Field
 from starlette.requests import HTTPConnection
 
+from service.settings import MAX_FPS_RANGE
+
 __all__ = [
     "ClientDrops",
     "ConfigModel",
@@ -97,10 +99,6 @@ async def reject_non_finite_json(conn: HTTPConnection) -> None:
         ) from None
     except ValueError:
         return  # malformed JSON: FastAPI's own parser reports it
-
-
-#: frames per second the worker may publish: below 0.1 a viewer would wait minutes for a frame
-MAX_FPS_RANGE = (0.1, 240.0)
 
 
 class Health(BaseModel):

@@ -25,7 +25,7 @@ from cfsr.layout import Layout
 from driver.ring import SpikeRing
 from driver.source import BlockFlags
 
-__all__ = ["Recorder", "RESERVE_BYTES", "free_bytes"]
+__all__ = ["Recorder", "RESERVE_BYTES", "free_bytes", "size_cap"]
 
 #: free space a recording always leaves on its disk (for the sidecar, logs, the system)
 RESERVE_BYTES = 64 * 1024 * 1024
@@ -35,6 +35,26 @@ _SPACE_CHECK_S = 0.5
 
 def free_bytes(folder: Path) -> int:
     return int(shutil.disk_usage(folder).free)
+
+
+def size_cap(folder: Path, max_bytes: int | None, least: int, least_what: str) -> int:
+    """Bytes a recording in ``folder`` may write: ``max_bytes`` (if given) within the free
+    space less :data:`RESERVE_BYTES`.
+
+    ValueError when ``max_bytes`` is under ``least`` bytes (the request is wrong); OSError when
+    the disk has not ``least`` bytes to spare (the disk is full).
+    """
+    if max_bytes is not None and max_bytes < least:
+        raise ValueError(f"max_bytes {max_bytes} is less than {least_what}")
+    room = free_bytes(folder) - RESERVE_BYTES
+    cap = room if max_bytes is None else min(room, max_bytes)
+    if cap < least:
+        raise OSError(
+            f"not enough free space to record in {folder}: {max(0, room + RESERVE_BYTES) / 1e6:.0f}"
+            f" MB free, a recording keeps {RESERVE_BYTES / 1e6:.0f} MB free and needs at least "
+            f"{least_what}"
+        )
+    return cap
 
 
 class Recorder:
@@ -53,20 +73,11 @@ class Recorder:
         self.path = Path(path)
         self.layout = layout
         fb = layout.frame_bytes
-        room = free_bytes(self.path.parent) - RESERVE_BYTES
         block = ring.slot_frames * fb
-        if max_bytes is not None and max_bytes < block:
-            # the request is what is wrong (422), not the disk (507)
-            raise ValueError(f"max_bytes {max_bytes} is less than one block of the stream "
-                             f"({ring.slot_frames} frames = {block} bytes)")
-        self.max_bytes = min(room, max_bytes) if max_bytes is not None else room
-        if self.max_bytes < block:
-            raise OSError(
-                f"not enough free space to record in {self.path.parent}: "
-                f"{max(0, room + RESERVE_BYTES) / 1e6:.0f} MB free, a recording keeps "
-                f"{RESERVE_BYTES / 1e6:.0f} MB free and needs at least one block "
-                f"({block / 1e6:.1f} MB)"
-            )
+        self.max_bytes = size_cap(
+            self.path.parent, max_bytes, block,
+            f"one block of the stream ({ring.slot_frames} frames = {block} bytes)",
+        )
         cap = self.max_bytes // fb
         self._asked_frames = max_frames
         self.max_frames = cap if max_frames is None else min(max_frames, cap)

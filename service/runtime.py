@@ -24,8 +24,7 @@ from driver.ring import SpikeRing
 from driver.source import CameraControl, ReplayControl, Source
 from service.catalog import SourceCatalog
 from service.frameslot import FrameSlot
-from service.models import MAX_FPS_RANGE
-from service.settings import Settings, SourceSpec
+from service.settings import MAX_FPS_RANGE, Settings, SourceSpec
 from service.worker import WorkerSupervisor
 
 __all__ = ["Runtime", "ConflictError"]

@@ -6,6 +6,12 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+#: frames per second the worker (or one client) may ask for: below 0.1 a viewer would wait
+#: minutes for a frame
+MAX_FPS_RANGE = (0.1, 240.0)
+#: seconds of sensor data the shared ring may hold (1 s of a 400 x 250 camera is 500 MB)
+RING_SECONDS_RANGE = (0.01, 10.0)
+
 __all__ = ["Settings", "SourceSpec", "default_data_dir", "cache_dir", "is_loopback"]
 
 

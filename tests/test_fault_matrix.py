@@ -14,7 +14,6 @@ import shutil
 import signal
 import socket
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -23,27 +22,15 @@ import httpx
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern, ws_frames  # noqa: E402
+from livehelpers import (  # noqa: E402
+    LiveServer,
+    segments_of,
+    wait_until,
+    write_pattern,
+    ws_frames,
+)
 
 pytestmark = [pytest.mark.timeout(900)]
-
-SHM_DIRS = [d for d in (Path("/dev/shm"), Path(tempfile.gettempdir())) if d.is_dir()]
-
-
-def segments_of(pid: int) -> list[Path]:
-    return sorted(p for d in SHM_DIRS for pre in ("cfsr-ring", "cfsr-frame")
-                  for p in d.glob(f"{pre}-{pid}-*"))
-
-
-def wait_until(pred: Callable[[], object], timeout: float, what: str):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.2)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
 
 class Ctx:
     def __init__(self, server: LiveServer, data: Path) -> None:

@@ -8,12 +8,12 @@ import os
 import socket
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import pytest
 
-SHM_DIRS = [d for d in (Path("/dev/shm"), Path(tempfile.gettempdir())) if d.is_dir()]
+sys.path.insert(0, str(Path(__file__).parent / "usb"))
+from livehelpers import free_port, segments_of  # noqa: E402
 
 
 def _serve(args: list[str], tmp_path: Path):
@@ -27,17 +27,6 @@ def _serve(args: list[str], tmp_path: Path):
     return proc.pid, proc.returncode, out, err
 
 
-def _segments_of(pid: int) -> list[Path]:
-    return [p for d in SHM_DIRS for pre in ("cfsr-ring", "cfsr-frame")
-            for p in d.glob(f"{pre}-{pid}-*")]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _check_one_line(pid, rc, err, *needles):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert rc == 2, (rc, err)
@@ -45,7 +34,7 @@ def _check_one_line(pid, rc, err, *needles):
     assert lines[0].startswith("cfsr serve: error:"), lines[0]
     for n in needles:
         assert n in lines[0], (n, lines[0])
-    assert _segments_of(pid) == []
+    assert segments_of(pid) == []
 
 
 @pytest.fixture
@@ -57,7 +46,7 @@ def bad_dat(tmp_path) -> Path:
 
 
 def test_bad_replay_file(tmp_path, bad_dat):
-    pid, rc, out, err = _serve(["--replay", str(bad_dat), "--port", str(_free_port()),
+    pid, rc, out, err = _serve(["--replay", str(bad_dat), "--port", str(free_port()),
                                 "--data-dir", str(bad_dat.parent)], tmp_path)
     _check_one_line(pid, rc, err, "bad.dat", "not a multiple of the frame size")
     assert "viewer at" not in out
@@ -84,17 +73,17 @@ def test_taken_port(tmp_path, bad_dat):
 def test_unusable_data_folder(tmp_path, bad_dat):
     not_a_folder = tmp_path / "file"
     not_a_folder.write_text("x")
-    pid, rc, out, err = _serve(["--port", str(_free_port()), "--data-dir", str(not_a_folder)],
+    pid, rc, out, err = _serve(["--port", str(free_port()), "--data-dir", str(not_a_folder)],
                                tmp_path)
     _check_one_line(pid, rc, err, "data folder", "is not a folder")
     below_a_file = not_a_folder / "sub"
-    pid, rc, out, err = _serve(["--port", str(_free_port()), "--data-dir", str(below_a_file)],
+    pid, rc, out, err = _serve(["--port", str(free_port()), "--data-dir", str(below_a_file)],
                                tmp_path)
     _check_one_line(pid, rc, err, "data folder", "cannot be created")
 
 
 def test_non_loopback_without_token(tmp_path):
-    pid, rc, out, err = _serve(["--host", "0.0.0.0", "--port", str(_free_port())], tmp_path)
+    pid, rc, out, err = _serve(["--host", "0.0.0.0", "--port", str(free_port())], tmp_path)
     _check_one_line(pid, rc, err, "requires an access token")
 
 
@@ -108,7 +97,7 @@ def test_crashed_servers_segments_are_removed_and_reported(tmp_path, bad_dat):
     for p in stale:
         p.write_bytes(b"\0" * 4096)
     try:
-        pid, rc, out, err = _serve(["--replay", str(bad_dat), "--port", str(_free_port()),
+        pid, rc, out, err = _serve(["--replay", str(bad_dat), "--port", str(free_port()),
                                     "--data-dir", str(bad_dat.parent)], tmp_path)
         assert not any(p.exists() for p in stale)
         assert "removed 2 shared-memory file(s) left by a server" in out

@@ -89,27 +89,23 @@ def build_parser() -> argparse.ArgumentParser:
         importlib.import_module(modname).add_arguments(p)
     plugins = _plugin_modules()
     for name in sorted(set(plugins) | set(EXTRA_COMMANDS)):
-        extra, help_ = EXTRA_COMMANDS.get(name, (None, ""))
-        problem = None
-        mod = None
-        if name in plugins:
-            try:
-                mod = plugins[name]()
-            except ImportError as exc:
-                problem = str(exc)
-        else:
-            problem = "not installed"
-        help_ = getattr(mod, "HELP", help_) or name
-        if mod is None:
-            hint = f"; {install_hint(extra)}" if extra else ""
-            help_ = f"{help_} (unavailable: {problem}{hint})"
-        p = sub.add_parser(name, help=help_, description=help_)
-        if mod is None:
-            p.set_defaults(_unavailable=f"{problem}{hint}")
-            p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        extra, help_ = EXTRA_COMMANDS.get(name, (None, name))
+        try:
+            mod = plugins[name]() if name in plugins else None
+            problem = None if mod is not None else "not installed"
+        except ImportError as exc:
+            mod, problem = None, str(exc)
+        if mod is not None:
+            help_ = getattr(mod, "HELP", help_)
+            p = sub.add_parser(name, help=help_, description=help_)
+            p.set_defaults(_module=mod.__name__)
+            mod.add_arguments(p)
             continue
-        p.set_defaults(_module=mod.__name__)
-        mod.add_arguments(p)
+        why = problem + (f"; {install_hint(extra)}" if extra else "")
+        help_ = f"{help_} (unavailable: {why})"
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(_unavailable=why)
+        p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     return parser
 
 

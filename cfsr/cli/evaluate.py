@@ -7,31 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from cfsr.cli._common import parse_times
 from cfsr.cli.simulate import SCENE_NAMES
-
-
-def _times(text: str) -> list[int]:
-    """``"400,600"`` or ``"400:1000:200"`` (START:STOP[:STRIDE], stop exclusive)."""
-    out: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        try:
-            if ":" in part:
-                bits = [int(b) for b in part.split(":")]
-                if len(bits) not in (2, 3) or (len(bits) == 3 and bits[2] <= 0):
-                    raise ValueError
-                out.extend(range(*bits))
-            else:
-                out.append(int(part))
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"bad time {part!r}; use steps like 400,600 or START:STOP:STRIDE"
-            ) from None
-    if not out:
-        raise argparse.ArgumentTypeError(f"no times in {text!r}")
-    return out
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--times",
         "-t",
-        type=_times,
+        type=parse_times,
         help="output steps, e.g. 480,690,900 or 400:1000:200 (default: 3 steps between 40 %% "
         "and 75 %% of the run)",
     )
@@ -105,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
             specs,
             scenes,
             steps=args.steps,
-            times=args.times,
+            times=args.times.resolve(args.steps) if args.times else None,
             seed=args.seed,
             height=args.height,
             width=args.width,

@@ -63,16 +63,10 @@ def run(args: argparse.Namespace) -> int:
         want = args.frames if args.frames is not None else int(round(args.seconds * info.rate_hz))
         if want < 1:
             raise ValueError("nothing to record: ask for at least one frame")
-        from service.recorder import RESERVE_BYTES, free_bytes
+        from service.recorder import size_cap
 
         fb = info.layout.frame_bytes
-        room = free_bytes(out.resolve().parent) - RESERVE_BYTES
-        if args.max_bytes is not None and args.max_bytes < fb:
-            raise ValueError(f"--max-bytes {args.max_bytes} is less than one frame ({fb} bytes)")
-        cap = room if args.max_bytes is None else min(room, args.max_bytes)
-        if cap < fb:
-            raise OSError(f"not enough free space for {out}: a recording keeps "
-                          f"{RESERVE_BYTES / 1e6:.0f} MB free")
+        cap = size_cap(out.resolve().parent, args.max_bytes, fb, f"one frame ({fb} bytes)")
         if want * fb > cap:
             print(f"cfsr record: capped at {cap // fb} frames ({cap / 1e6:.1f} MB)",
                   file=sys.stderr)

@@ -49,6 +49,12 @@ def _bounded(lo: float, hi: float, what: str):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from replay.device import MAX_SPEED, MIN_SPEED
+    from service.settings import MAX_FPS_RANGE, RING_SECONDS_RANGE
+
+    fps_lo, fps_hi = MAX_FPS_RANGE
+    ring_lo, ring_hi = RING_SECONDS_RANGE
+
     src = p.add_mutually_exclusive_group()
     src.add_argument("--replay", metavar="FILE", type=Path, help="replay a .dat recording")
     src.add_argument("--usb", action="store_true", help="use the USB spike camera")
@@ -71,14 +77,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="folder of recordings offered in the viewer; recordings are written to "
                    "DATA_DIR/recordings (default $CFSR_DATA_DIR or ~/.local/share/cfsr)")
     p.add_argument("--method", default="tfp", help="initial reconstruction method (default tfp)")
-    p.add_argument("--speed", type=_bounded(1e-4, 1000, "x real time"), default=1.0,
-                   help="replay speed, 1e-4..1000 (1 = real time)")
+    p.add_argument("--speed", type=_bounded(MIN_SPEED, MAX_SPEED, "x real time"),
+                   default=1.0, help=f"replay speed, {MIN_SPEED:g}..{MAX_SPEED:g} (1 = real time)")
     p.add_argument("--no-loop", action="store_true", help="stop at the end of a replay")
-    p.add_argument("--max-fps", type=_bounded(0.1, 240, "frames/s"), default=30.0,
-                   help="most frames/s published, 0.1..240 (default 30)")
-    p.add_argument("--ring-seconds", type=_bounded(0.01, 10, "s"), default=0.25,
-                   help="seconds of sensor data the shared ring holds, 0.01..10 (default 0.25; "
-                   "1 s of a 400 x 250 camera is 500 MB of shared memory)")
+    p.add_argument("--max-fps", type=_bounded(*MAX_FPS_RANGE, "frames/s"), default=30.0,
+                   help=f"most frames/s published, {fps_lo:g}..{fps_hi:g} (default 30)")
+    p.add_argument("--ring-seconds", type=_bounded(*RING_SECONDS_RANGE, "s"), default=0.25,
+                   help=f"seconds of sensor data the shared ring holds, {ring_lo:g}..{ring_hi:g} "
+                   "(default 0.25; 1 s of a 400 x 250 camera is 500 MB of shared memory)")
     p.add_argument("--replay-mode", choices=("paced", "fast"), default="paced",
                    help="paced: real-time schedule (default); fast: deterministic, as fast as "
                    "the worker consumes (tests)")
@@ -166,14 +172,15 @@ def _check_viewer(settings) -> None:
 
 
 def _remove_stale_segments() -> int:
-    """Shared-memory files of a server that crashed (its pid is gone): removed, and counted."""
-    from driver.ring import remove_stale_files
+    """Shared-memory files of a server that crashed (its pid is gone): removed, and counted.
 
-    dirs = {Path("/dev/shm"), Path(tempfile.gettempdir())}
-    if os.environ.get("CFSR_RING_DIR"):
-        dirs.add(Path(os.environ["CFSR_RING_DIR"]))
-    prefixes = ("cfsr-ring", "cfsr-frame")
-    return sum(remove_stale_files(d, prefix) for d in dirs for prefix in prefixes)
+    Creating a ring or slot removes them too (:func:`driver.ring.create_shared_file`); this
+    pass only exists so that the start can say how many there were."""
+    from driver.ring import RING_PREFIX, remove_stale_files, shared_dirs
+    from service.frameslot import FRAME_PREFIX
+
+    dirs = {d for d in shared_dirs() if d.is_dir()}
+    return sum(remove_stale_files(d, pre) for d in dirs for pre in (RING_PREFIX, FRAME_PREFIX))
 
 
 def _token_note(token: str | None) -> str:

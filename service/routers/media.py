@@ -15,6 +15,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from service.deps import HubDep, require_token, ws_token_ok
 from service.hub import ClientQueue, FrameHub
 from service.render import encode_jpeg, encode_png, render_rgb
+from service.settings import MAX_FPS_RANGE
 
 router = APIRouter(tags=["media"])
 log = logging.getLogger("cfsr.media")
@@ -104,10 +105,6 @@ async def mjpeg(
     )
 
 
-#: a client's own rate cap, frames/s: a value outside is clamped (0 or none: no cap)
-CLIENT_FPS_RANGE = (0.1, 240.0)
-
-
 def _client_fps(value) -> float | None:
     """A WebSocket client's ``max_fps`` (query or message), never NaN, infinite or so small
     that its sender would sleep for ever."""
@@ -117,7 +114,7 @@ def _client_fps(value) -> float | None:
         return None
     if not math.isfinite(v) or v <= 0:
         return None
-    lo, hi = CLIENT_FPS_RANGE
+    lo, hi = MAX_FPS_RANGE  # outside: clamped (0 or none: no cap)
     return min(max(v, lo), hi)
 
 

@@ -25,6 +25,26 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def segments_of(pid: int) -> list[Path]:
+    """Shared-memory files (spike ring, frame slot) that process ``pid`` created."""
+    from driver.ring import RING_PREFIX, shared_dirs
+    from service.frameslot import FRAME_PREFIX
+
+    return sorted(p for d in set(shared_dirs()) if d.is_dir()
+                  for pre in (RING_PREFIX, FRAME_PREFIX) for p in d.glob(f"{pre}-{pid}-*"))
+
+
+def wait_until(pred, timeout: float, what: str):
+    """Poll ``pred`` every 0.2 s until it returns something true (returned) or time is up."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
 def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:
     from cfsr.datfile import write_dat
     from replay.pattern import pattern_recording
