@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 
 from cfsr._bits import unpack_frames
+from cfsr.config import MethodConfig
 from cfsr.layout import Layout
-from cfsr.methods.registry import Method, Output, get_method, resolve_params
+from cfsr.methods.registry import Method, Output
 
 __all__ = ["StreamingReconstructor"]
 
@@ -25,8 +26,9 @@ class StreamingReconstructor:
 
     Parameters
     ----------
-    method : str
-        Registered method name (see :func:`cfsr.methods`).
+    method : str or MethodConfig
+        Registered method name (see :func:`cfsr.methods`), or a validated
+        :class:`~cfsr.config.MethodConfig` (then ``params`` and ``preset`` stay unset).
     layout : Layout
         Geometry/orientation of the packed frames pushed in.
     params : mapping, optional
@@ -46,7 +48,7 @@ class StreamingReconstructor:
 
     def __init__(
         self,
-        method: str,
+        method: str | MethodConfig,
         layout: Layout,
         *,
         params: Mapping[str, Any] | None = None,
@@ -65,7 +67,11 @@ class StreamingReconstructor:
 
     # -- configuration -------------------------------------------------------------------
     def set_method(
-        self, method: str, *, params: Mapping[str, Any] | None = None, preset: str | None = None
+        self,
+        method: str | MethodConfig,
+        *,
+        params: Mapping[str, Any] | None = None,
+        preset: str | None = None,
     ) -> None:
         """Switch method/parameters at run time, all or nothing.
 
@@ -75,10 +81,26 @@ class StreamingReconstructor:
         ValueError naming a parameter, a MemoryError for the buffer) leaves the reconstructor
         exactly as it was, still reconstructing. The buffer follows the window both ways, so
         the memory of a large window is given back when a smaller one replaces it.
+
+        A :class:`~cfsr.config.MethodConfig` was validated when it was made (perhaps in
+        another process) and is not validated again; only its window is checked against the
+        method's limit here, because this is where a buffer of that size would be allocated.
         """
-        m: Method = get_method(method)
-        p = resolve_params(m, params, preset)
-        before, after = (int(x) for x in m.window(p))
+        if isinstance(method, MethodConfig):
+            if params is not None or preset is not None:
+                raise TypeError("pass params/preset inside the MethodConfig, not beside it")
+            cfg = method
+        else:
+            cfg = MethodConfig(method, params, preset)
+        m: Method = cfg.spec
+        p = dict(cfg.params)
+        before, after = cfg.window
+        if before + after > m.max_span:
+            raise ValueError(
+                f"method {m.name!r} with {dict(cfg.params)}: a window of {before} steps "
+                f"before t and {after} after exceeds the {m.max_span} steps a history "
+                "buffer may hold"
+            )
         cap = before + after + 1 + self.slack
         buf, keep = self._buf, self._count
         if buf is None or cap != self._capacity:
@@ -88,6 +110,7 @@ class StreamingReconstructor:
                 a = self._next - keep
                 _write_mirrored(buf, cap, self.packed(a, self._next), a)
         # commit: plain assignments from here on, nothing can fail half-way
+        self.config = cfg
         self.method, self.params = m, p
         self.before, self.after = before, after
         if buf is not self._buf:
@@ -131,17 +154,6 @@ class StreamingReconstructor:
         elif not self._count:
             self._first = self._next = start
         self._append(packed, start)
-
-    def push_frames(self, frames: np.ndarray, start: int | None = None) -> None:
-        """Append upright unpacked frames (packed here in the reconstructor's layout)."""
-        from cfsr._bits import pack_frames
-
-        lay = self.layout
-        frames = np.asarray(frames)
-        if lay.head_cols:
-            pad = np.zeros(frames.shape[:2] + (lay.head_cols,), np.uint8)
-            frames = np.concatenate([frames, pad], axis=2)
-        self.push(pack_frames(frames, flipud=lay.flipud, fliplr=lay.fliplr), start)
 
     def _append(self, packed: np.ndarray, start: int) -> None:
         cap = self._capacity

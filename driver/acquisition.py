@@ -11,8 +11,8 @@ from __future__ import annotations
 import logging
 import threading
 
-from driver.ring import SpikeRing
 from driver.source import BlockFlags, Source, SourceEnded, SourceError, SourceState
+from shm.ring import SpikeRing
 
 __all__ = ["Acquisition"]
 

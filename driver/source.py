@@ -129,10 +129,18 @@ class Block:
         return int(self.data.shape[0])
 
 
-class Facility:
-    """Base class of optional source features (see :meth:`Source.get_facility`)."""
+class Facility(abc.ABC):
+    """Base class of optional source features (see :meth:`Source.get_facility`).
 
-    name = "facility"
+    An abstract base class, so that a facility missing one of its interface's methods fails
+    when it is made (TypeError), not when a caller first needs that method. Each interface
+    names itself (a class attribute ``name``, the word :meth:`Source.capabilities` lists).
+    """
+
+    @property
+    @abc.abstractmethod
+    def name(self) -> str:
+        """The capability's name, e.g. ``"replay"``."""
 
 
 class ReplayControl(Facility):

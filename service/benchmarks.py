@@ -74,7 +74,7 @@ def _drain(ring, seconds: float, source_counters) -> dict[str, Any]:
 def _measure(src, frame_bytes: int, fpb: int, seconds: float) -> tuple[dict[str, Any], int]:
     """Acquire from an opened source into a fresh ring for ``seconds``; close both."""
     from driver.acquisition import Acquisition
-    from driver.ring import SpikeRing
+    from shm.ring import SpikeRing
 
     ring = SpikeRing.create(64, fpb, frame_bytes)
     acq = Acquisition(src, ring)

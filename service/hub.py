@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from service.frameslot import FrameSlot, SlotFrame
+from shm.frameslot import FrameSlot, SlotFrame
 
 __all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message", "WS_HEADER"]
 
@@ -164,7 +164,7 @@ class FrameHub:
         self.clients: dict[int, ClientQueue] = {}
         self.latest: SlotFrame | None = None
         self.latest_msg: bytes | None = None
-        self._seq = -1
+        self._seq: int | None = None  # sequence number of self.latest
         self._times: deque[float] = deque(maxlen=512)
         self.frames_seen = 0
         self.closed_clients_dropped = 0

@@ -11,7 +11,8 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, BeforeValidator, Field
 from starlette.requests import HTTPConnection
 
-from service.settings import MAX_FPS_RANGE
+from service.config import GainMode
+from service.settings import MAX_FPS_RANGE, RECORDING_NAME_PATTERN
 
 __all__ = [
     "ClientDrops",
@@ -107,7 +108,7 @@ class Health(BaseModel):
 
 
 class DisplayConfig(BaseModel):
-    gain_mode: Literal["recording", "auto", "fixed"] = Field(
+    gain_mode: GainMode = Field(
         "recording",
         description="recording: the file's display gain if it has one, else auto; auto: the "
         "99.5th percentile of each frame; fixed: `gain`",
@@ -288,7 +289,7 @@ class RecordStatus(BaseModel):
 class RecordRequest(BaseModel):
     action: Literal["start", "stop"]
     name: str | None = Field(
-        None, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$",
+        None, pattern=RECORDING_NAME_PATTERN,
         description="file name without folder (.dat added); default rec-<time>",
     )
     max_frames: int | None = Field(None, ge=1, description="stop by itself after this many")

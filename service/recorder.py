@@ -22,8 +22,8 @@ from typing import Any
 
 from cfsr.datfile import DatWriter
 from cfsr.layout import Layout
-from driver.ring import SpikeRing
 from driver.source import BlockFlags
+from shm.ring import SpikeRing
 
 __all__ = ["Recorder", "RESERVE_BYTES", "free_bytes", "size_cap"]
 

@@ -2,7 +2,7 @@
 ring, worker supervisor, frame hub and recorder.
 
 Data flow: ``Source.read_block`` -> :class:`~driver.acquisition.Acquisition` ->
-:class:`~driver.ring.SpikeRing` (shared memory) -> worker process -> latest-frame slot ->
+:class:`~shm.ring.SpikeRing` (shared memory) -> worker process -> latest-frame slot ->
 :class:`~service.hub.FrameHub` -> per-client latest-only queues.
 """
 
@@ -10,28 +10,25 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 import threading
 import time
 from collections import deque
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 from cfsr.layout import Layout
 from driver.acquisition import Acquisition
-from driver.ring import SpikeRing
 from driver.source import CameraControl, ReplayControl, Source
 from service.catalog import SourceCatalog
-from service.frameslot import FrameSlot
-from service.settings import MAX_FPS_RANGE, Settings, SourceSpec
+from service.config import DisplayScale, LiveConfig, WorkerConfig
+from service.settings import RECORDING_NAME_RE, Settings, SourceSpec
 from service.worker import WorkerSupervisor
+from shm.frameslot import FrameSlot
+from shm.ring import SpikeRing
 
 __all__ = ["Runtime", "ConflictError"]
 
 log = logging.getLogger("cfsr.runtime")
-
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
 class ConflictError(RuntimeError):
@@ -71,12 +68,8 @@ class Runtime:
         self.worker: WorkerSupervisor | None = None
         self.recorder = None
         self.last_recording: dict[str, Any] | None = None
-        self.config: dict[str, Any] = {
-            "method": settings.method,
-            "params": dict(settings.params),
-            "display": {"gain_mode": "recording", "gain": None},
-            "max_fps": settings.max_fps,
-        }
+        #: the configuration in force (set by :meth:`start`, changed by :meth:`set_config`)
+        self.config: LiveConfig
         self._lock = threading.RLock()
         self.started = time.monotonic()
         self._in_rate = _RateMeter()
@@ -89,11 +82,12 @@ class Runtime:
 
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
-        from cfsr.methods.registry import get_method, resolve_params
+        """Validate the configuration of the settings, open the source, make the ring and
+        the frame slot, start acquisition and the worker (all or nothing)."""
+        from cfsr.config import MethodConfig
 
-        m = get_method(self.config["method"])
-        self.config["method"] = m.name
-        self.config["params"] = resolve_params(m, self.config["params"])
+        st = self.settings
+        self.config = LiveConfig(MethodConfig(st.method, st.params), DisplayScale(), st.max_fps)
         try:
             self.slot = FrameSlot.create()
             spec = self.settings.source
@@ -103,7 +97,7 @@ class Runtime:
                 self.slot, self._worker_config(), hang_timeout=self.settings.worker_hang_timeout
             )
             assert self.ring is not None
-            self.worker.start(str(self.ring.path), self.source.info.layout.to_dict())
+            self.worker.start(str(self.ring.path), self.source.info.layout)
         except BaseException:
             # a start that fails half-way leaves no segment, thread or worker behind
             self.stop()
@@ -202,11 +196,11 @@ class Runtime:
                     self._install(old_src, self.source_id or "previous")
                 raise
             if new_ring and self.worker is not None:
-                self.worker.attach(str(self.ring.path), new.info.layout.to_dict())
+                self.worker.attach(str(self.ring.path), new.info.layout)
                 if old_ring is not None:
                     # the worker re-maps the new ring; the old file can go (mappings persist)
                     old_ring.close()
-            self.worker.configure(gain=self._effective_gain())
+            self.worker.configure(self._worker_config())
         return self.source.describe()
 
     def _keep_source_counters(self, src: Source) -> None:
@@ -226,39 +220,34 @@ class Runtime:
         return ctl
 
     # -- configuration ----------------------------------------------------------------------------
-    def _effective_gain(self, config: dict[str, Any] | None = None) -> float | None:
+    def _effective_gain(self, config: LiveConfig | None = None) -> float | None:
         """Display gain the worker uses (spikes/step shown as white; None: auto per frame)
-        under ``config`` (default: the stored one)."""
-        d = (self.config if config is None else config)["display"]
-        if d["gain_mode"] == "fixed" and d.get("gain"):
-            return float(d["gain"])
-        if d["gain_mode"] == "recording" and self.source is not None:
-            g = self.source.info.meta.get("gain")
-            if g:
-                return float(g)
-        return None
+        under ``config`` (default: the stored one), with the current source's own gain."""
+        c = self.config if config is None else config
+        src_gain = self.source.info.meta.get("gain") if self.source is not None else None
+        return c.display.effective_gain(src_gain)
 
-    def _worker_config(self, config: dict[str, Any] | None = None) -> dict[str, Any]:
+    def _worker_config(self, config: LiveConfig | None = None) -> WorkerConfig:
         """What the worker needs of ``config`` (default: the stored one)."""
         c = self.config if config is None else config
-        return {
-            "method": c["method"],
-            "params": dict(c["params"]),
-            "gain": self._effective_gain(c),
-            "max_fps": float(c["max_fps"]),
-            "deterministic": self.settings.replay_mode == "fast",
-        }
+        return WorkerConfig(
+            method=c.method,
+            gain=self._effective_gain(c),
+            max_fps=c.max_fps,
+            deterministic=self.settings.replay_mode == "fast",
+        )
 
     def get_config(self) -> dict[str, Any]:
+        """The stored configuration with the gain in effect (``GET /api/config``)."""
         self._settle_pending_config()
-        return {**self.config, "effective_gain": self._effective_gain()}
+        return {**self.config.public(), "effective_gain": self._effective_gain()}
 
     #: Seconds :meth:`set_config` waits for the worker to apply a configuration before it
     #: answers "pending" (the worker reads commands between frames; a first frame of a
     #: method may first compile its kernels, which takes longer).
     config_ack_timeout_s: float = 5.0
-    #: A configuration stored before the worker answered: (version, the one it replaced).
-    _pending_config: tuple[int, dict[str, Any], dict[str, Any]] | None = None
+    #: A configuration stored before the worker answered: (version, it, the one it replaced).
+    _pending_config: tuple[int, LiveConfig, LiveConfig] | None = None
 
     def set_config(
         self,
@@ -270,62 +259,32 @@ class Runtime:
     ) -> dict[str, Any]:
         """Validate, hand to the worker, and store once the worker applied it.
 
-        All or nothing: a value out of range raises ValueError here; a configuration the
-        worker cannot apply (it keeps running the old one) raises ValueError with the
-        worker's reason, and the stored configuration is not changed. When the worker has
-        not answered within :attr:`config_ack_timeout_s`, the configuration is stored (the
+        All or nothing: a value out of range raises ValueError here (the new
+        :class:`~service.config.LiveConfig` cannot be made); a configuration the worker
+        cannot apply (it keeps running the old one) raises ValueError with the worker's
+        reason, and the stored configuration is not changed. When the worker has not
+        answered within :attr:`config_ack_timeout_s`, the configuration is stored (the
         worker applies commands in order) and the result says ``state: "pending"``; should
         the worker reject it later, the next :meth:`get_config`/:meth:`set_config` restores
         the one it replaced. Returns the configuration with ``state`` (``applied`` or
         ``pending``) and the worker's config ``version``.
         """
-        from cfsr.methods.registry import get_method, resolve_params
-
         with self._lock:
             self._settle_pending_config()
-            new = dict(self.config)
-            if method is not None:
-                m = get_method(method)
-                new["method"] = m.name
-                base = {} if m.name != self.config["method"] else dict(self.config["params"])
-            else:
-                m = get_method(new["method"])
-                base = dict(self.config["params"])
-            base.update(params or {})
-            new["params"] = resolve_params(m, base)
-            if display is not None:
-                d = {**new["display"], **{k: v for k, v in display.items() if v is not None}}
-                if d.get("gain_mode") not in ("recording", "auto", "fixed"):
-                    raise ValueError(
-                        f"display gain_mode {d.get('gain_mode')!r}: use recording, auto or fixed"
-                    )
-                gain = d.get("gain")
-                if gain is not None and (
-                    isinstance(gain, bool)
-                    or not isinstance(gain, int | float)
-                    or not (math.isfinite(gain) and 0 < gain <= 1)
-                ):
-                    raise ValueError(f"display gain must be in (0, 1] spikes/step, got {gain!r}")
-                if d.get("gain_mode") == "fixed" and not gain:
-                    raise ValueError("display gain_mode 'fixed' needs a gain (spikes/step)")
-                new["display"] = d
-            if max_fps is not None:
-                # written so that NaN fails too (every comparison with NaN is false)
-                lo, hi = MAX_FPS_RANGE
-                if not (math.isfinite(float(max_fps)) and lo <= float(max_fps) <= hi):
-                    raise ValueError(f"max_fps must be in [{lo}, {hi}] frames/s, got {max_fps}")
-                new["max_fps"] = float(max_fps)
+            new = self.config.changed(
+                method=method, params=params, display=display, max_fps=max_fps
+            )
             if self.worker is None:
                 self.config = new
                 return {**self.get_config(), "state": "applied", "version": None}
-            version = self.worker.configure(**self._worker_config(new))
-            state, reason = self.worker.wait_config(version, self.config_ack_timeout_s)
-            if state == "rejected":
-                raise ValueError(f"configuration not applied, {reason}")
-            if state == "pending":
+            version = self.worker.configure(self._worker_config(new))
+            ack = self.worker.wait_config(version, self.config_ack_timeout_s)
+            if ack.state == "rejected":
+                raise ValueError(f"configuration not applied, {ack.reason}")
+            if ack.state == "pending":
                 self._pending_config = (version, new, self.config)
             self.config = new
-            return {**self.get_config(), "state": state, "version": version}
+            return {**self.get_config(), "state": ack.state, "version": version}
 
     def _settle_pending_config(self) -> None:
         """Take the worker's late answer to a configuration stored while "pending"."""
@@ -333,7 +292,7 @@ class Runtime:
         if pend is None or w is None:
             return
         version, stored, replaced = pend
-        state, _ = w.wait_config(version, 0.0)
+        state = w.wait_config(version, 0.0).state
         if state == "pending":
             return
         with self._lock:
@@ -354,7 +313,7 @@ class Runtime:
             if self.recorder is not None and self.recorder.running:
                 raise ConflictError(f"already recording to {self.recorder.path.name}")
             name = name or datetime.now().strftime("rec-%Y%m%d-%H%M%S")
-            if not _NAME_RE.match(name):
+            if not RECORDING_NAME_RE.match(name):
                 raise ValueError(f"recording name {name!r}: use letters, digits, . _ - only")
             if not name.endswith(".dat"):
                 name += ".dat"
@@ -368,7 +327,7 @@ class Runtime:
             meta = {
                 "source": src.describe(),
                 "gain": src.info.meta.get("gain"),
-                "method_at_start": self.config["method"],
+                "method_at_start": self.config.method.method,
             }
             meta = {k: v for k, v in meta.items() if v is not None}
             self.recorder = Recorder(
@@ -465,8 +424,8 @@ class Runtime:
         return {
             "uptime_s": time.monotonic() - self.started,
             "source": source,
-            "method": self.config["method"],
-            "params": self.config["params"],
+            "method": self.config.method.method,
+            "params": dict(self.config.method.params),
             "input_steps_per_s": in_rate,
             "real_time_factor": in_rate / rate_hz if rate_hz else 0.0,
             "output_fps": hub.fps() if hub else 0.0,
@@ -490,6 +449,3 @@ class Runtime:
     @property
     def layout(self) -> Layout | None:
         return self.source.info.layout if self.source else None
-
-    def data_path(self, rel: str) -> Path:
-        return self.settings.data_dir / rel

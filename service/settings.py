@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,8 +12,22 @@ from pathlib import Path
 MAX_FPS_RANGE = (0.1, 240.0)
 #: seconds of sensor data the shared ring may hold (1 s of a 400 x 250 camera is 500 MB)
 RING_SECONDS_RANGE = (0.01, 10.0)
+#: a recording's file name (without folder; ``.dat`` is added): a letter or digit first, then
+#: letters, digits, ``.``, ``_``, ``-``; at most 64 characters, so never a path or a hidden file
+RECORDING_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+RECORDING_NAME_RE = re.compile(RECORDING_NAME_PATTERN)
 
-__all__ = ["Settings", "SourceSpec", "default_data_dir", "cache_dir", "is_loopback"]
+__all__ = [
+    "MAX_FPS_RANGE",
+    "RECORDING_NAME_PATTERN",
+    "RECORDING_NAME_RE",
+    "RING_SECONDS_RANGE",
+    "Settings",
+    "SourceSpec",
+    "cache_dir",
+    "default_data_dir",
+    "is_loopback",
+]
 
 
 def cache_dir() -> Path:

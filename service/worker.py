@@ -11,6 +11,12 @@ and restarts it after a crash (reported, with backoff) without taking the servic
 worker applies each configuration all or nothing and answers every version: applied, or
 rejected with the reason while the previous configuration keeps running
 (:meth:`WorkerSupervisor.wait_config`).
+
+Everything that crosses the process boundary is a small frozen dataclass (pickled by the
+queues): commands :class:`Configure`, :class:`Attach`, :class:`Inject`, :class:`Stop` to the
+worker; events :class:`Ready`, :class:`ConfigAnswer`, :class:`WorkerError`, :class:`Crashed`
+back. A :class:`~service.config.WorkerConfig` was validated where it was made (in the web
+process) and is applied as is.
 """
 
 from __future__ import annotations
@@ -24,23 +30,110 @@ import threading
 import time
 import traceback
 from collections import OrderedDict, deque
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, Literal, NamedTuple
 
-__all__ = ["WorkerSupervisor", "worker_main"]
+from cfsr.layout import Layout
+from service.config import WorkerConfig
+from shm.frameslot import FrameSlot
+
+__all__ = [
+    "Attach",
+    "ConfigAck",
+    "ConfigAnswer",
+    "Configure",
+    "Crashed",
+    "Inject",
+    "Ready",
+    "Stop",
+    "WorkerError",
+    "WorkerSupervisor",
+    "worker_main",
+]
 
 log = logging.getLogger("cfsr.worker")
+
+
+# ----------------------------------------------------------------------------------------------
+# messages between the supervisor and the worker (pickled by the multiprocessing queues)
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Configure:
+    """Run ``config`` from now on (or reject it and keep the running one)."""
+
+    config: WorkerConfig
+
+
+@dataclass(frozen=True)
+class Attach:
+    """Read the ring at ``ring_path`` (a new source made a new ring) of frames ``layout``."""
+
+    ring_path: str
+    layout: Layout
+
+
+@dataclass(frozen=True)
+class Inject:
+    """Test hook: ``crash`` exits like a segfault (status ``code``); ``raise`` raises."""
+
+    fault: Literal["crash", "raise"]
+    code: int = 3
+    message: str = "injected worker failure"
+
+
+@dataclass(frozen=True)
+class Stop:
+    """Leave the loop and exit."""
+
+
+@dataclass(frozen=True)
+class Ready:
+    """The worker mapped the ring and the slot and runs its first configuration."""
+
+    pid: int
+
+
+@dataclass(frozen=True)
+class ConfigAnswer:
+    """The worker's one answer to config ``version``: applied, or rejected with ``reason``
+    (the previous configuration keeps running)."""
+
+    version: int
+    applied: bool
+    reason: str | None = None
+
+
+@dataclass(frozen=True)
+class WorkerError:
+    """A frame failed (the worker goes on); ``message`` holds the traceback."""
+
+    message: str
+
+
+@dataclass(frozen=True)
+class Crashed:
+    """The worker is dying of an uncaught exception (``message``: the traceback)."""
+
+    message: str
+
+
+class ConfigAck(NamedTuple):
+    """:meth:`WorkerSupervisor.wait_config`'s answer (a tuple: ``state, reason = ...``)."""
+
+    state: Literal["applied", "rejected", "pending"]
+    reason: str | None = None
 
 
 # ----------------------------------------------------------------------------------------------
 # worker process
 # ----------------------------------------------------------------------------------------------
 class _Worker:
-    def __init__(self, slot_path: str, config: dict[str, Any], evt_q: Any) -> None:
-        from service.frameslot import FrameSlot
+    def __init__(self, slot_path: str, config: WorkerConfig, evt_q: Any) -> None:
+        from shm.frameslot import STAT_FIELDS
 
         self.slot = FrameSlot.attach(slot_path)
         self.evt_q = evt_q
-        self.config = dict(config)
+        self.config = config
         self.ring = None
         self.reader = None
         self.rec = None
@@ -48,13 +141,11 @@ class _Worker:
         st = self.slot.stats_array()
         st[:] = 0
         self.st = st
-        from service.frameslot import STAT_FIELDS
-
         self.ix = {k: i for i, k in enumerate(STAT_FIELDS)}
         self.st[self.ix["pid"]] = os.getpid()
         self.st[self.ix["started"]] = time.monotonic()
-        self._skip_expect_cum: int | None = None
         self._lost_base = self._overrun_base = self._torn_base = self._gaps_base = 0
+        self._skip_base = 0
         self._last_out_step: int | None = None
         self._next_out = 0.0
         self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
@@ -66,26 +157,23 @@ class _Worker:
         self.st[self.ix[name]] = value
 
     # -- configuration ------------------------------------------------------------------------
-    def attach(self, ring_path: str, layout: dict[str, Any]) -> None:
-        from cfsr.layout import Layout
-        from driver.ring import SpikeRing
+    def attach(self, ring_path: str, layout: Layout) -> None:
+        from shm.ring import SpikeRing
 
         if self.reader is not None:
             self._lost_base += self.reader.lost_frames
+            self._skip_base += self.reader.skipped_frames
             self._overrun_base += self.reader.overruns
             self._torn_base += self.reader.torn
             self.reader.close()
         if self.ring is not None:
             self.ring.close()
         self.ring = SpikeRing.attach(ring_path)
-        self.layout = Layout(**layout)
-        self.reader = self.ring.reader(
-            start="latest", register=bool(self.config.get("deterministic")), keep=1
-        )
-        self._skip_expect_cum = None
+        self.layout = layout
+        self.reader = self.ring.reader(start="latest", register=self.config.deterministic, keep=1)
         self._build()
 
-    def _build(self, cfg: dict[str, Any] | None = None) -> None:
+    def _build(self, cfg: WorkerConfig | None = None) -> None:
         """Make the reconstructor run ``cfg`` (default: the current config), all or nothing.
 
         The new reconstructor state is built completely before it replaces the running one
@@ -96,36 +184,33 @@ class _Worker:
         from cfsr.streaming import StreamingReconstructor
 
         cfg = self.config if cfg is None else cfg
-        params = cfg.get("params") or {}
         if self.rec is None or self.rec.layout != self.layout:
-            rec = StreamingReconstructor(cfg["method"], self.layout, params=params, slack=1024)
+            rec = StreamingReconstructor(cfg.method, self.layout, slack=1024)
             if self.rec is not None:
                 self._gaps_base += self.rec.gaps
             self.rec = rec
         else:
-            self.rec.set_method(cfg["method"], params=params)
+            self.rec.set_method(cfg.method)
         self.config = cfg
         self._last_out_step = None
-        version = cfg.get("version", 0)
-        self.put("config_version", version)
-        self.evt_q.put(("config", version, cfg["method"], self.rec.params))
+        self.put("config_version", cfg.version)
+        self.evt_q.put(ConfigAnswer(cfg.version, applied=True))
 
-    def configure(self, cfg: dict[str, Any]) -> None:
-        """Apply a config change (``version`` included) or reject it, keeping the old one.
+    def configure(self, cfg: WorkerConfig) -> None:
+        """Apply config ``cfg`` or reject it, keeping the old one.
 
-        Every version gets exactly one answer on the event queue: ``("config", version, ...)``
-        once applied, ``("rejected", version, reason)`` when it could not be (the running
-        reconstruction goes on unchanged, so frames keep coming).
+        Every version gets exactly one :class:`ConfigAnswer` on the event queue: applied, or
+        rejected with the reason (the running reconstruction goes on unchanged, so frames
+        keep coming).
         """
-        new = {**self.config, **cfg}
         if self.layout is None:  # not attached yet: the config is used when it is
-            self.config = new
+            self.config = cfg
             return
         try:
-            self._build(new)
+            self._build(cfg)
         except Exception as exc:  # noqa: BLE001 - any failure rejects this version only
             reason = f"{type(exc).__name__}: {exc}"
-            self.evt_q.put(("rejected", new.get("version", 0), reason))
+            self.evt_q.put(ConfigAnswer(cfg.version, applied=False, reason=reason))
         else:
             self._next_out = 0.0  # publish under the new config at once, not at the old pace
 
@@ -140,26 +225,22 @@ class _Worker:
         if reader is None or rec is None:
             return 0
         pushed = 0
-        deterministic = bool(self.config.get("deterministic"))
-        if not deterministic:
+        if not self.config.deterministic:
             need_blocks = -(-self.needed_frames() // ring.slot_frames) + 1
             if reader.backlog > need_blocks + 1:
-                self._skip_expect_cum = reader._next_cum
-                reader.skip_to_latest(need_blocks)
+                reader.skip_to_latest(need_blocks)  # counted in reader.skipped_frames
         budget = time.monotonic() + 0.05
         while True:
             blk = reader.poll()
             if blk is None:
                 break
-            if self._skip_expect_cum is not None:
-                self.bump("worker_skip_frames", max(0, blk.cum_before - self._skip_expect_cum))
-                self._skip_expect_cum = None
             from driver.source import BlockFlags
 
             if blk.flags & BlockFlags.DISCONTINUITY:
                 rec.reset(blk.index)
             rec.push(blk.data, blk.index)
             ok = reader.release(blk)
+            self.put("worker_skip_frames", self._skip_base + reader.skipped_frames)
             self.put("ring_lost_frames", self._lost_base + reader.lost_frames)
             self.put("ring_overruns", self._overrun_base + reader.overruns)
             self.put("ring_torn", self._torn_base + reader.torn)
@@ -194,7 +275,7 @@ class _Worker:
 
         t0 = time.perf_counter()
         out = rec.compute(t)
-        gain = self.config.get("gain")
+        gain = self.config.gain
         g = float(gain) if gain else _auto_gain(out.rate)
         img = to_display(out.rate, g)
         compute_ms = (time.perf_counter() - t0) * 1e3
@@ -217,7 +298,7 @@ class _Worker:
         for name, v in (("compute_ms", compute_ms), ("latency_ms", latency_ms)):
             old = self.st[ix[name]]
             self.st[ix[name]] = v if old == 0 else (1 - a) * old + a * v
-        fps = float(self.config.get("max_fps") or 30.0)
+        fps = self.config.max_fps
         self._next_out = max(now + 1.0 / fps, time.monotonic() + 0.0)
         return True
 
@@ -231,8 +312,8 @@ def _auto_gain(rate) -> float:
 def worker_main(
     ring_path: str,
     slot_path: str,
-    layout: dict[str, Any],
-    config: dict[str, Any],
+    layout: Layout,
+    config: WorkerConfig,
     cmd_q: Any,
     evt_q: Any,
 ) -> None:
@@ -247,7 +328,7 @@ def worker_main(
     try:
         w = _Worker(slot_path, config, evt_q)
         w.attach(ring_path, layout)
-        evt_q.put(("ready", os.getpid()))
+        evt_q.put(Ready(os.getpid()))
         consecutive_errors = 0
         parent = os.getppid()
         loops = 0
@@ -259,17 +340,18 @@ def worker_main(
             try:
                 while True:
                     cmd = cmd_q.get_nowait()
-                    op = cmd.get("op")
-                    if op == "stop":
+                    if isinstance(cmd, Stop):
                         return
-                    if op == "config":
-                        w.configure(cmd["config"])
-                    elif op == "attach":
-                        w.attach(cmd["ring_path"], cmd["layout"])
-                    elif op == "crash":  # test hook: die like a segfault would
-                        os._exit(int(cmd.get("code", 3)))
-                    elif op == "raise":  # test hook: an uncaught Python error
-                        raise RuntimeError(cmd.get("message", "injected worker failure"))
+                    if isinstance(cmd, Configure):
+                        w.configure(cmd.config)
+                    elif isinstance(cmd, Attach):
+                        w.attach(cmd.ring_path, cmd.layout)
+                    elif isinstance(cmd, Inject) and cmd.fault == "crash":
+                        os._exit(cmd.code)  # test hook: die like a segfault would
+                    elif isinstance(cmd, Inject):  # test hook: an uncaught Python error
+                        raise RuntimeError(cmd.message)
+                    else:
+                        log.error("unknown worker command %r ignored", cmd)
             except queue.Empty:
                 pass
             try:
@@ -279,14 +361,14 @@ def worker_main(
             except Exception as exc:  # noqa: BLE001 - a method failure must not kill the worker
                 consecutive_errors += 1
                 w.bump("errors")
-                evt_q.put(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+                evt_q.put(WorkerError(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
                 time.sleep(min(1.0, 0.05 * consecutive_errors))
                 continue
             if not pushed and not produced:
                 time.sleep(0.001)
     except BaseException as exc:  # noqa: BLE001 - report before dying
         try:
-            evt_q.put(("crash", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+            evt_q.put(Crashed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
             time.sleep(0.1)
         finally:
             raise
@@ -302,25 +384,27 @@ class WorkerSupervisor:
     ----------
     slot : FrameSlot
         The latest-frame slot (created by the web process).
-    config : dict
-        ``method, params, gain, max_fps, deterministic``; changed with :meth:`configure`.
+    config : WorkerConfig
+        The first configuration (its ``version`` starts the count); changed with
+        :meth:`configure`.
     hang_timeout : float
         Seconds without a heartbeat after which the worker is considered hung and restarted.
     """
 
     def __init__(
-        self, slot, config: dict[str, Any], *, hang_timeout: float = 120.0
+        self, slot: FrameSlot, config: WorkerConfig, *, hang_timeout: float = 120.0
     ) -> None:
         self.slot = slot
-        self.config = dict(config)
-        self.config.setdefault("version", 0)
+        #: the configuration asked for (the newest sent, or the last confirmed after a
+        #: rejection): what a restarted worker starts with
+        self.config = config
         self.hang_timeout = hang_timeout
         self._ctx = mp.get_context("spawn")
         self._proc: mp.process.BaseProcess | None = None
         self._cmd_q = None
         self._evt_q = None
         self._ring_path: str | None = None
-        self._layout: dict[str, Any] | None = None
+        self._layout: Layout | None = None
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -329,20 +413,20 @@ class WorkerSupervisor:
         self.errors: deque[dict[str, Any]] = deque(maxlen=20)
         self.ready = threading.Event()
         self.applied_version = -1
-        self.applied_params: dict[str, Any] = {}
-        # config versions: issued here, answered by the worker ("config" or "rejected")
-        self._version = int(self.config["version"])
-        self._applied_config = dict(self.config)  # the last version the worker confirmed
-        self._sent: dict[int, dict[str, Any]] = {}  # versions sent, not answered yet
-        self._answers: OrderedDict[int, tuple[str, str | None]] = OrderedDict()
+        # config versions: issued here, answered by the worker (ConfigAnswer)
+        self._version = config.version
+        self._applied_config = config  # the last version the worker confirmed
+        self._sent: dict[int, WorkerConfig] = {}  # versions sent, not answered yet
+        self._answers: OrderedDict[int, ConfigAck] = OrderedDict()
         self._started_at = 0.0
         self._last_message: str | None = None
         self._counter_base: dict[str, float] = {}
         self._last_stats: dict[str, float] = {}
 
     # -- lifecycle --------------------------------------------------------------------------------
-    def start(self, ring_path: str, layout: dict[str, Any]) -> None:
-        self._ring_path, self._layout = ring_path, dict(layout)
+    def start(self, ring_path: str, layout: Layout) -> None:
+        """Spawn the worker on the ring at ``ring_path`` and watch it."""
+        self._ring_path, self._layout = ring_path, layout
         self._spawn()
         self._thread = threading.Thread(target=self._monitor, name="cfsr-supervisor", daemon=True)
         self._thread.start()
@@ -375,7 +459,7 @@ class WorkerSupervisor:
             proc = self._proc
             if proc is not None and proc.is_alive():
                 try:
-                    self._cmd_q.put({"op": "stop"})
+                    self._cmd_q.put(Stop())
                 except (OSError, ValueError):
                     pass
                 proc.join(timeout)
@@ -393,8 +477,9 @@ class WorkerSupervisor:
                 q.close()
 
     # -- control ----------------------------------------------------------------------------------
-    def configure(self, **changes: Any) -> int:
-        """Send a config change to the worker; returns its version (see :meth:`wait_config`).
+    def configure(self, config: WorkerConfig) -> int:
+        """Send ``config`` to the worker under a new version, returned (see
+        :meth:`wait_config`; the version ``config`` carries is replaced).
 
         ``self.config`` is the configuration asked for; when the worker rejects the newest
         version, it goes back to the last one the worker confirmed (so a restarted worker
@@ -403,16 +488,16 @@ class WorkerSupervisor:
         with self._lock:
             self._version += 1
             v = self._version
-            self.config.update(changes)
-            self.config["version"] = v
-            self._sent[v] = dict(self.config)
-            self._send({"op": "config", "config": dict(self.config)})
+            self.config = replace(config, version=v)
+            self._sent[v] = self.config
+            self._send(Configure(self.config))
             return v
 
-    def wait_config(self, version: int, timeout: float) -> tuple[str, str | None]:
+    def wait_config(self, version: int, timeout: float) -> ConfigAck:
         """The worker's answer to config ``version``, waiting at most ``timeout`` seconds.
 
-        Returns ``("applied", None)``, ``("rejected", reason)`` or ``("pending", None)`` when
+        Returns ``ConfigAck("applied")``, ``ConfigAck("rejected", reason)`` or
+        ``ConfigAck("pending")`` when
         no answer came in time (the worker is busy, e.g. compiling a method's kernels on
         first use; it answers later, see ``applied_version`` and ``last_errors``).
         """
@@ -423,12 +508,14 @@ class WorkerSupervisor:
                 if version in self._answers:
                     return self._answers[version]
             if time.monotonic() >= end:
-                return ("pending", None)
+                return ConfigAck("pending")
             time.sleep(0.005)
 
-    def _answer(self, version: int, state: str, reason: str | None = None) -> None:
+    def _answer(
+        self, version: int, state: Literal["applied", "rejected"], reason: str | None = None
+    ) -> None:
         """Record the worker's answer to ``version`` (called with ``self._lock`` held)."""
-        self._answers[version] = (state, reason)
+        self._answers[version] = ConfigAck(state, reason)
         while len(self._answers) > 256:
             self._answers.popitem(last=False)
         cfg = self._sent.pop(version, None)
@@ -440,20 +527,22 @@ class WorkerSupervisor:
             return
         self.errors.append({"time": time.time(), "message": f"config {version} {reason}"})
         log.warning("worker config %d not applied: %s", version, reason)
-        if version == self.config.get("version"):
+        if version == self.config.version:
             # nothing newer was asked for: fall back to what the worker runs
-            self.config = dict(self._applied_config)
+            self.config = self._applied_config
 
-    def attach(self, ring_path: str, layout: dict[str, Any]) -> None:
+    def attach(self, ring_path: str, layout: Layout) -> None:
+        """Make the worker read a new ring (the source changed geometry or block size)."""
         with self._lock:
-            self._ring_path, self._layout = ring_path, dict(layout)
-            self._send({"op": "attach", "ring_path": ring_path, "layout": dict(layout)})
+            self._ring_path, self._layout = ring_path, layout
+            self._send(Attach(ring_path, layout))
 
-    def inject(self, op: str, **kw: Any) -> None:
-        """Test hooks: ``crash`` (hard exit) or ``raise`` (uncaught Python exception)."""
-        self._send({"op": op, **kw})
+    def inject(self, fault: Literal["crash", "raise"], **kw: Any) -> None:
+        """Test hooks: ``crash`` (hard exit, ``code=``) or ``raise`` (uncaught Python
+        exception, ``message=``)."""
+        self._send(Inject(fault, **kw))
 
-    def _send(self, cmd: dict[str, Any]) -> None:
+    def _send(self, cmd: Configure | Attach | Inject | Stop) -> None:
         if self._cmd_q is not None:
             self._cmd_q.put(cmd)
 
@@ -481,20 +570,19 @@ class WorkerSupervisor:
                 ev = q.get_nowait()
             except (queue.Empty, OSError, ValueError, EOFError):
                 return
-            kind = ev[0]
-            if kind == "ready":
+            if isinstance(ev, Ready):
                 self.ready.set()
-            elif kind == "config":
-                self.applied_version = ev[1]
-                self.applied_params = dict(ev[3])
-                self._answer(ev[1], "applied")
-            elif kind == "rejected":
-                self._answer(ev[1], "rejected", f"rejected by the worker: {ev[2][:4000]}")
-            elif kind == "error":
-                self.errors.append({"time": time.time(), "message": ev[1][:4000]})
-                log.warning("worker error: %s", ev[1].splitlines()[0])
-            elif kind == "crash":
-                self._last_message = ev[1][:4000]
+            elif isinstance(ev, ConfigAnswer) and ev.applied:
+                self.applied_version = ev.version
+                self._answer(ev.version, "applied")
+            elif isinstance(ev, ConfigAnswer):
+                reason = (ev.reason or "")[:4000]
+                self._answer(ev.version, "rejected", f"rejected by the worker: {reason}")
+            elif isinstance(ev, WorkerError):
+                self.errors.append({"time": time.time(), "message": ev.message[:4000]})
+                log.warning("worker error: %s", ev.message.splitlines()[0])
+            elif isinstance(ev, Crashed):
+                self._last_message = ev.message[:4000]
 
     def _monitor(self) -> None:
         backoff = 0.5
@@ -568,7 +656,7 @@ class WorkerSupervisor:
             "restarts": self.restarts,
             "crashes": list(self.crashes),
             "last_errors": list(self.errors)[-3:],
-            "config_version": self.config.get("version", 0),
+            "config_version": self.config.version,
             "applied_version": self.applied_version,
             "heartbeat_age_s": None if math.isinf(st["heartbeat_age_s"]) else st["heartbeat_age_s"],
         }

@@ -11,20 +11,17 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 
 import pytest
 import schemathesis  # in the test extra: a missing one fails the tier, never skips it
 from hypothesis import HealthCheck, settings
+from livehelpers import LiveServer, write_pattern, ws_frames
 from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (
     content_type_conformance,
     response_schema_conformance,
 )
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern, ws_frames  # noqa: E402
 
 pytestmark = [pytest.mark.fuzz, pytest.mark.timeout(1200)]
 

@@ -180,7 +180,7 @@ def test_import_cfsr_does_not_load_camera_stack():
     import subprocess
 
     code = (
-        "import sys, cfsr; bad = [m for m in ('fastapi', 'usb', 'uvicorn', 'driver', "
+        "import sys, cfsr; bad = [m for m in ('fastapi', 'usb', 'uvicorn', 'driver', 'shm', "
         "'replay', 'service', 'cv2') if m in sys.modules]; print(bad); assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
@@ -192,7 +192,7 @@ def test_import_cfsr_does_not_load_camera_stack():
         "cfsr.reconstruct(x, 'tfp', [200], window=32)\n"
         "cfsr.reconstruct(x, 'csr', [200])\n"
         "bad = [m for m in ('fastapi', 'starlette', 'uvicorn', 'websockets', 'usb', "
-        "'prometheus_client', 'dask', 'distributed', 'matplotlib', 'driver', 'replay', "
+        "'prometheus_client', 'dask', 'distributed', 'matplotlib', 'driver', 'shm', 'replay', "
         "'service') if m in sys.modules]\n"
         "assert not bad, bad\n"
     )

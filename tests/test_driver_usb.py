@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+from livehelpers import wait_until
 
 pytest.importorskip("usb.core")
 
@@ -40,14 +41,17 @@ def _check_block(rec, blk):
 
 def _read(src, k, rec=None, timeout=5.0):
     out = []
-    end = time.monotonic() + timeout
-    while len(out) < k and time.monotonic() < end:
-        b = src.read_block(0.3)
+
+    def got_all() -> bool:
+        b = src.read_block(0.3)  # waits for data itself: no pause between polls
         if b is not None:
             if rec is not None:
                 _check_block(rec, b)
             out.append(b)
-    assert len(out) == k, f"got {len(out)} of {k} blocks; counters {src.counters()}"
+        return len(out) >= k
+
+    wait_until(got_all, timeout, lambda: f"{k} blocks (got {len(out)}; counters "
+               f"{src.counters()})", interval=0)
     return out
 
 

@@ -13,16 +13,13 @@ import os
 import shutil
 import signal
 import socket
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import httpx
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import (  # noqa: E402
+from livehelpers import (
     LiveServer,
     segments_of,
     wait_until,

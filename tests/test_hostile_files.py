@@ -440,7 +440,6 @@ def test_catalog_survives_bad_files_and_reports_them(hostile_folder, caplog):
 
 @pytest.mark.timeout(600)
 def test_service_stays_up_through_bad_files(hostile_folder):
-    sys.path.insert(0, str(REPO / "tests" / "usb"))
     from livehelpers import LiveServer
 
     scene = _pattern(hostile_folder / "scene.dat", 20_000)

@@ -6,17 +6,14 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
 import zipfile
 from pathlib import Path
 
 import httpx
 import pytest
+from livehelpers import LiveServer, write_pattern
 from wheelenv import REPO, clean_env, project_version, run_cli
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern  # noqa: E402
 
 pytestmark = [pytest.mark.packaging, pytest.mark.timeout(1200)]
 

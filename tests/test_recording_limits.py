@@ -13,13 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from livehelpers import LiveServer, write_pattern
 
 import cfsr
 from cfsr.datfile import DatWriter, sidecar_path
 from cfsr.layout import Layout
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern  # noqa: E402
 
 LAY = Layout(400, 250)
 

@@ -141,3 +141,18 @@ def test_bad_arguments(dat):
         ReplayDevice(dat, mode="warp")
     with pytest.raises(ValueError, match="frame range"):
         ReplayDevice(dat, start=900, end=2000)
+
+
+def test_facility_interfaces_are_enforced():
+    """A facility that lacks a method of its interface cannot be made (Facility is an ABC)."""
+    from driver.source import Facility
+
+    class HalfReplay(ReplayControl):
+        def play(self) -> None: ...
+
+    with pytest.raises(TypeError, match="abstract"):
+        HalfReplay()
+    with pytest.raises(TypeError):
+        Facility()
+    with pytest.raises(TypeError):
+        CameraControl()

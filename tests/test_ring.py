@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from driver.ring import SpikeRing
+from shm.ring import SpikeRing
 
 FB = 64  # small frames keep the tests fast; the ring does not care about geometry
 
@@ -135,14 +135,14 @@ def test_blocking_mode_waits_for_registered_consumer():
 def _slow_consumer(path: str, n_expected_frames: int, q) -> None:
     r = SpikeRing.attach(path)
     rd = r.reader(start="oldest", keep=1)
+    q.put("attached")  # the producer starts writing only now
     bad = 0
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline:
         blk = rd.poll()
         if blk is None:
-            if r._hdr[9]:  # producer closed
-                if rd.backlog == 0:
-                    break
+            if r.finished and rd.backlog == 0:
+                break
             time.sleep(0.001)
             continue
         data = blk.data.copy()
@@ -163,12 +163,12 @@ def test_slow_consumer_in_another_process():
     p = ctx.Process(target=_slow_consumer, args=(str(ring.path), n_blocks * per, q))
     p.start()
     try:
-        time.sleep(0.5)  # let it attach (it starts from the oldest block held)
+        assert q.get(timeout=60) == "attached"  # it starts from the oldest block held
         for i in range(n_blocks):
             ring.write(i * per, _block(i * per, per))
             if i % 50 == 0:
                 time.sleep(0.001)
-        ring._hdr[9] = 1  # tell the consumer we are done (without unmapping yet)
+        ring.finish()  # tell the consumer we are done (without unmapping yet)
         frames_read, lost, overruns, torn, bad = q.get(timeout=30)
         p.join(10)
     finally:
@@ -181,3 +181,55 @@ def test_slow_consumer_in_another_process():
     # on every frame is either read or counted lost
     assert frames_read + lost <= n_blocks * per
     assert frames_read + lost >= n_blocks * per - 16 * per
+
+
+def test_skip_to_latest_counts_skipped_not_lost(ring):
+    rd = ring.reader(start="oldest")
+    ring.write(0, _block(0, 4))
+    assert rd.read() is not None
+    for i in range(1, 6):  # 5 blocks of 4 frames; the reader keeps only the newest one
+        ring.write(4 * i, _block(4 * i, 4))
+    rd.skip_to_latest(1)
+    blk, data = rd.read()
+    _check(blk.index, data)
+    assert blk.index == 20
+    assert rd.skipped_frames == 16 and rd.lost_frames == 0
+
+
+def test_finish_is_seen_by_an_attached_reader(ring):
+    other = SpikeRing.attach(ring.path)
+    try:
+        assert not other.finished
+        ring.finish()
+        assert other.finished
+    finally:
+        other.close()
+
+
+def test_seqlock_words():
+    from shm.seqlock import EMPTY, WRITING, Seqlock
+
+    words = np.zeros(3, np.int64)
+    lock = Seqlock(words)
+    lock.reset()
+    assert lock.read(1) == EMPTY
+    lock.begin_write(1)
+    assert lock.read(1) == WRITING and not lock.unchanged(1, 0)
+    lock.end_write(1, 7)
+    assert lock.unchanged(1, 7) and lock.read(0) == EMPTY
+    with pytest.raises(ValueError):
+        Seqlock(np.zeros(3, np.float64))
+
+
+def test_shm_imports_nothing_of_ours():
+    """``shm`` sits below ``driver`` and ``service``: plumbing that imports none of them (nor
+    ``cfsr``), so both may import it without an arrow pointing up."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, shm.files, shm.seqlock, shm.ring, shm.frameslot\n"
+        "bad = [m for m in ('cfsr', 'driver', 'replay', 'service') if m in sys.modules]\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -3,18 +3,13 @@ the token never appears in a URL or in the output (issue 12, items 6 and 7)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import httpx
 import pytest
 from fastapi import FastAPI, WebSocket
 from fastapi.testclient import TestClient
+from livehelpers import LiveServer, write_pattern
 
 from service.security import HostOriginGuard, allowed_hosts, make_session, session_ok
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern  # noqa: E402
 
 
 def _tiny_app(hosts, origins=()):

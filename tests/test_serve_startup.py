@@ -11,9 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import free_port, segments_of  # noqa: E402
+from livehelpers import free_port, segments_of
 
 
 def _serve(args: list[str], tmp_path: Path):

@@ -8,14 +8,10 @@ import json
 import os
 import socket
 import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern, ws_frames  # noqa: E402
+from livehelpers import LiveServer, wait_until, write_pattern, ws_frames
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -132,9 +128,9 @@ def test_frame_png_and_mjpeg(server):
                 break
     part = buf.split(b"\r\n\r\n", 1)[1]
     assert part[:2] == b"\xff\xd8"  # JPEG SOI
-    time.sleep(0.5)
     # the MJPEG client went away and was removed
-    assert all(c["kind"] != "mjpeg" for c in server.status()["drops"]["per_client"])
+    server.wait_for(lambda s: all(c["kind"] != "mjpeg" for c in s["drops"]["per_client"]),
+                    timeout=10, what="the MJPEG client to be removed")
 
 
 def test_metrics(server):
@@ -143,7 +139,19 @@ def test_metrics(server):
     assert "cfsr_real_time_factor" in text and "cfsr_output_fps" in text
 
 
-def test_sources_only_from_the_data_folder(server, data_dir):
+@pytest.fixture
+def back_on_a_dat(server):
+    """Tests that switch the module's server to another source put it back on ``a.dat``
+    (at real-time speed, playing), whatever happens in them."""
+    try:
+        yield server
+    finally:
+        server.put("/api/source", json={"id": "file:a.dat"})
+        server.put("/api/replay", json={"speed": 1.0, "playing": True, "loop": True})
+
+
+def test_sources_only_from_the_data_folder(back_on_a_dat, data_dir):
+    server = back_on_a_dat
     items = {s["id"]: s for s in server.get("/api/sources").json()}
     assert "file:a.dat" in items and "file:sub/b.dat" in items
     assert items["file:a.dat"]["frames"] == 4000
@@ -169,7 +177,8 @@ def test_sources_only_from_the_data_folder(server, data_dir):
     assert ws_frames(server, 6)[-1]["image"].shape == (250, 400)
 
 
-def test_simulator_and_usb_sources_through_the_same_interface(server):
+def test_simulator_and_usb_sources_through_the_same_interface(back_on_a_dat):
+    server = back_on_a_dat
     r = server.put("/api/source", json={"id": "sim:pattern"})
     assert r.status_code == 200, r.text
     st = server.wait_for(lambda s: s["source"]["kind"] == "simulator" and s["output_fps"] > 0,
@@ -215,19 +224,18 @@ def test_record_command(tmp_path, data_dir):
     assert r.returncode == 2 and "exists" in r.stderr
 
 
-def test_replay_controls(server):
+def test_replay_controls(back_on_a_dat):
+    server = back_on_a_dat
     r = server.put("/api/replay", json={"playing": False})
     assert r.status_code == 200 and r.json()["playing"] is False
-    p1 = server.get("/api/replay").json()["position"]
-    time.sleep(0.3)
-    assert server.get("/api/replay").json()["position"] == p1
     r = server.post("/api/replay/seek", json={"position": 1000})
     assert r.json()["position"] == 1000
     r = server.post("/api/replay/step", json={"n": 10})
     assert r.status_code == 200
-    end = time.monotonic() + 10
-    while server.get("/api/replay").json()["position"] != 1010 and time.monotonic() < end:
-        time.sleep(0.05)
+    # paused, the position moves by the frames stepped and no further (playing, it would
+    # move in whole blocks of 256 frames, never to 1010)
+    wait_until(lambda: server.get("/api/replay").json()["position"] == 1010, 10,
+               "the 10 stepped frames", interval=0.05)
     assert server.get("/api/replay").json()["position"] == 1010
     r = server.post("/api/replay/seek", json={"seconds": 0.05})
     assert r.json()["position"] == 2000
@@ -235,7 +243,6 @@ def test_replay_controls(server):
     r = server.put("/api/replay", json={"speed": 0.5, "playing": True, "loop": True})
     assert r.json()["speed"] == 0.5 and r.json()["playing"] is True
     assert server.status()["source"]["replay"]["speed"] == 0.5
-    server.put("/api/replay", json={"speed": 1.0})
 
 
 def test_record_writes_dat_and_sidecar(server, data_dir):
@@ -244,7 +251,8 @@ def test_record_writes_dat_and_sidecar(server, data_dir):
     r = server.post("/api/record", json={"action": "start", "name": "take1"})
     assert r.status_code == 200, r.text
     assert server.post("/api/record", json={"action": "start"}).status_code == 409
-    time.sleep(0.5)
+    wait_until(lambda: server.get("/api/record").json()["frames"] > 0, 30, "recorded frames",
+               interval=0.05)
     assert server.get("/api/record").json()["recording"] is True
     r = server.post("/api/record", json={"action": "stop"})
     assert r.status_code == 200

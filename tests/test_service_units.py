@@ -9,9 +9,9 @@ import os
 import numpy as np
 import pytest
 
-from service.frameslot import FrameSlot
 from service.hub import ClientQueue, FrameHub, decode_ws_message, encode_ws_message
 from service.settings import Settings, SourceSpec
+from shm.frameslot import FrameSlot
 
 
 def _slot_with_frame(h=5, w=7, step=2**40 + 3):
@@ -72,6 +72,47 @@ def test_hub_fans_out_once_per_frame():
             slot.close()
 
     asyncio.run(go())
+
+
+def test_empty_slot_reads_nothing_and_seq_counts_frames():
+    slot = FrameSlot.create(max_pixels=16)
+    try:
+        assert slot.read() is None and slot.seq < 0  # nothing published yet
+        img = np.zeros((4, 4), np.uint8)
+        for k in (1, 2):
+            slot.publish(step=k, image=img, masks={}, method="tfp", gain=0.5, t_arrival=0.0,
+                         compute_ms=0.0, latency_ms=0.0)
+            f = slot.read()
+            assert f.seq == slot.seq == f.frame_no == k
+    finally:
+        slot.close()
+
+
+def test_hub_run_logs_a_failure_and_goes_on(caplog):
+    """The fan-out loop survives an error, counts it and logs it once (never silently)."""
+
+    class Broken:
+        calls = 0
+
+        def read(self, since=None):
+            Broken.calls += 1
+            raise OSError("slot unmapped")
+
+    async def go():
+        hub = FrameHub(Broken(), poll_s=0.001)  # type: ignore[arg-type]
+        task = asyncio.create_task(hub.run())
+        while Broken.calls < 3:
+            await asyncio.sleep(0.01)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return hub
+
+    with caplog.at_level("ERROR", logger="cfsr.hub"):
+        hub = asyncio.run(go())
+    assert hub.errors >= 3 and hub.last_error == "OSError: slot unmapped"
+    logged = [r for r in caplog.records if "frame fan-out failed" in r.getMessage()]
+    assert len(logged) == 1 and logged[0].exc_info is not None
 
 
 def test_settings_token_rule(tmp_path):

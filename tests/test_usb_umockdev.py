@@ -17,15 +17,11 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import pytest
 from conftest import require_tier
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import REPO, LiveServer, write_pattern, ws_frames  # noqa: E402
+from livehelpers import REPO, LiveServer, wait_until, write_pattern, ws_frames
 
 pytestmark = [pytest.mark.usb, pytest.mark.timeout(600)]
 
@@ -135,9 +131,8 @@ def test_service_on_emulated_usb_camera(tmp_path):
         r = s.post("/api/record", json={"action": "start", "name": "usbtake",
                                          "max_frames": 4096})
         assert r.status_code == 200
-        end = time.monotonic() + 30
-        while s.get("/api/record").json().get("recording") and time.monotonic() < end:
-            time.sleep(0.1)
+        wait_until(lambda: not s.get("/api/record").json().get("recording"), 30,
+                   "the recording to stop at max_frames", interval=0.1)
         rec = s.get("/api/record").json()
         assert rec["frames"] == 4096
         # the scheduled unplug (9 s after the camera appeared): the service stays up,
@@ -146,14 +141,18 @@ def test_service_on_emulated_usb_camera(tmp_path):
                         and x["source"]["state"] == "streaming", timeout=60,
                         what="reconnect after unplug")
         assert s.get("/healthz").status_code == 200
-        cam = {}
-        end = time.monotonic() + 20
-        while time.monotonic() < end:
+        cam: dict = {}
+
+        def loss_accounted() -> bool:
+            nonlocal cam, st
             cam = json.loads(state.read_text())
             st = s.status()
-            if cam["expected_loss"] == st["drops"]["usb"] and cam["faults_pending"] == 0:
-                break
-            time.sleep(0.2)
+            return cam["expected_loss"] == st["drops"]["usb"] and cam["faults_pending"] == 0
+
+        try:
+            wait_until(loss_accounted, 20, "the camera's loss in drops.usb")
+        except AssertionError:
+            pass  # the asserts below say what differs
         assert "unplug" in cam["events"] and "replug" in cam["events"]
         assert st["drops"]["usb"] == cam["expected_loss"] > 0
         assert st["source"]["counters"]["disconnects"] == 1

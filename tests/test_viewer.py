@@ -7,16 +7,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from conftest import require_tier
+from livehelpers import LiveServer, write_pattern
 from wheelenv import clean_env
-
-sys.path.insert(0, str(Path(__file__).parent / "usb"))
-from livehelpers import LiveServer, write_pattern  # noqa: E402
 
 pytestmark = [pytest.mark.browser, pytest.mark.timeout(600)]
 

@@ -4,23 +4,38 @@ restarted by its supervisor."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
+from livehelpers import wait_until
 
 from cfsr.api import reconstruct_outputs
+from cfsr.config import MethodConfig
 from cfsr.display import to_display
 from cfsr.methods.registry import get_method, resolve_params
 from driver.acquisition import Acquisition
-from driver.ring import SpikeRing
 from replay.device import ReplayDevice
 from replay.pattern import pattern_recording
-from service.frameslot import FrameSlot
+from service.config import WorkerConfig
 from service.worker import WorkerSupervisor
+from shm.frameslot import FrameSlot
+from shm.ring import SpikeRing
 
 H, W, N = 24, 32, 6000
 GAIN = 0.6
+
+
+def _cfg(method: str = "tfp", params: dict | None = None) -> WorkerConfig:
+    return WorkerConfig(MethodConfig(method, params), gain=GAIN, max_fps=200.0,
+                        deterministic=True)
+
+
+def _unchecked(method: str, params: dict) -> WorkerConfig:
+    """A config that skipped the web side's validation (as one that validates there but
+    cannot be built in the worker): the worker must reject it and keep running."""
+    m = object.__new__(MethodConfig)
+    object.__setattr__(m, "method", method)
+    object.__setattr__(m, "params", {**resolve_params(get_method(method)), **params})
+    return WorkerConfig(m, gain=GAIN, max_fps=200.0, deterministic=True)
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +49,8 @@ def pipeline(rec):
     dev.open()
     ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
     slot = FrameSlot.create(max_pixels=H * W)
-    cfg = {"method": "tfp", "params": {}, "gain": GAIN, "max_fps": 200.0, "deterministic": True}
-    sup = WorkerSupervisor(slot, cfg)
-    sup.start(str(ring.path), rec.layout.to_dict())
+    sup = WorkerSupervisor(slot, _cfg())
+    sup.start(str(ring.path), rec.layout)
     assert sup.ready.wait(120), "worker did not start"
     acq = Acquisition(dev, ring)
     acq.start()
@@ -48,16 +62,22 @@ def pipeline(rec):
 
 
 def _frames(slot, n, timeout=120.0, method=None):
-    out, seq = [], -1
-    end = time.monotonic() + timeout
-    while len(out) < n and time.monotonic() < end:
+    """Up to ``n`` new frames (of ``method``) within ``timeout`` s (fewer: the caller says)."""
+    out, seq = [], None
+
+    def enough() -> bool:
+        nonlocal seq
         f = slot.read(since=seq)
-        if f is None:
-            time.sleep(0.002)
-            continue
-        seq = f.seq
-        if method is None or f.method == method:
-            out.append(f)
+        if f is not None:
+            seq = f.seq
+            if method is None or f.method == method:
+                out.append(f)
+        return len(out) >= n
+
+    try:
+        wait_until(enough, timeout, "frames", interval=0.002)
+    except AssertionError:
+        pass
     return out
 
 
@@ -75,7 +95,7 @@ def test_deterministic_output_equals_offline_and_method_switch(rec, pipeline):
     dev, ring, slot, sup, acq = pipeline
     for method in ("tfp", "tfi"):
         if method != "tfp":
-            sup.configure(method=method, params={})
+            sup.configure(_cfg(method))
         frames = _frames(slot, 12, method=method)
         assert len(frames) == 12, f"no {method} frames"
         compared = 0
@@ -91,10 +111,8 @@ def test_deterministic_output_equals_offline_and_method_switch(rec, pipeline):
     assert st["worker_skip_frames"] == 0
     # the supervisor learns of an applied config from its monitor thread, which drains the
     # worker's events every 0.1 s: the frames of the new method can arrive before that
-    end = time.monotonic() + 10.0
-    while sup.applied_version != sup.config["version"] and time.monotonic() < end:
-        time.sleep(0.02)
-    assert sup.applied_version == sup.config["version"]
+    wait_until(lambda: sup.applied_version == sup.config.version, 10, "the applied version",
+               interval=0.02)
 
 
 def test_every_registered_method_runs_in_the_worker(rec, pipeline):
@@ -102,7 +120,7 @@ def test_every_registered_method_runs_in_the_worker(rec, pipeline):
 
     dev, ring, slot, sup, acq = pipeline
     for name in methods():
-        sup.configure(method=name, params={})
+        sup.configure(_cfg(name))
         got = _frames(slot, 1, method=name, timeout=180)
         assert got, f"worker produced no frame with {name}"
         assert got[0].image.shape == (H, W)
@@ -115,9 +133,7 @@ def test_crash_is_reported_and_worker_restarted(pipeline):
     assert _frames(slot, 2)
     pid = sup.pid
     sup.inject("crash", code=3)
-    end = time.monotonic() + 60
-    while sup.restarts < 1 and time.monotonic() < end:
-        time.sleep(0.05)
+    wait_until(lambda: sup.restarts >= 1, 60, "a restart", interval=0.05)
     assert sup.restarts == 1
     assert sup.crashes[-1]["exitcode"] == 3
     assert sup.ready.wait(120)
@@ -127,9 +143,7 @@ def test_crash_is_reported_and_worker_restarted(pipeline):
     assert sup.stats()["frames_out"] > before  # counters carried over the restart
     # an uncaught Python exception is reported with its message
     sup.inject("raise", message="boom for the test")
-    end = time.monotonic() + 60
-    while sup.restarts < 2 and time.monotonic() < end:
-        time.sleep(0.05)
+    wait_until(lambda: sup.restarts >= 2, 60, "a second restart", interval=0.05)
     assert sup.restarts == 2
     assert "boom for the test" in (sup.crashes[-1]["message"] or "")
     assert sup.ready.wait(120)
@@ -144,9 +158,9 @@ def test_rejected_config_keeps_the_worker_publishing(rec, pipeline):
     before = sup.applied_version
     # sent straight to the supervisor: past the web side's checks, like a config that
     # validates there but cannot be built in the worker
-    bad = sup.configure(method="tfp", params={"window": 1_000_000_000})
+    bad = sup.configure(_unchecked("tfp", {"window": 1_000_000_000}))
     small = {"max_isi": 50}  # a window no larger than before (no new buffer needed)
-    good = sup.configure(method="tfi", params=small)
+    good = sup.configure(_cfg("tfi", small))
     frames = _frames(slot, 6, method="tfi", timeout=60)
     assert len(frames) == 6, "no frame after a rejected config"
     state, reason = sup.wait_config(bad, 30)
@@ -162,10 +176,10 @@ def test_rejected_config_keeps_the_worker_publishing(rec, pipeline):
     assert compared >= 2
     # the newest config rejected: the supervisor falls back to what the worker runs, so a
     # restarted worker would start with a config that works
-    bad2 = sup.configure(params={"window": 1_000_000_000})
-    assert sup.wait_config(bad2, 30)[0] == "rejected"
-    assert sup.config["method"] == "tfi" and sup.config["params"] == small
-    assert sup.config["version"] == sup.applied_version == good
+    bad2 = sup.configure(_unchecked("tfi", {"max_isi": 1_000_000_000}))
+    assert sup.wait_config(bad2, 30).state == "rejected"
+    assert sup.config.method == MethodConfig("tfi", small)
+    assert sup.config.version == sup.applied_version == good
     assert any("window" in e["message"] for e in sup.errors)
     assert _frames(slot, 2, method="tfi")
 
@@ -174,20 +188,15 @@ def test_unconfirmed_config_is_not_replayed_into_a_new_worker(pipeline):
     dev, ring, slot, sup, acq = pipeline
     assert _frames(slot, 1)
     sup.inject("crash", code=3)  # dies before it reads the config below
-    v = sup.configure(method="tfi", params={})
+    v = sup.configure(_cfg("tfi"))
     state, reason = sup.wait_config(v, 60)
     assert state == "rejected" and "exited" in reason
-    assert sup.config["method"] == "tfp"
-    end = time.monotonic() + 60
-    while sup.restarts < 1 and time.monotonic() < end:
-        time.sleep(0.05)
+    assert sup.config.method.method == "tfp"
+    wait_until(lambda: sup.restarts >= 1, 60, "a restart", interval=0.05)
     assert sup.restarts == 1 and sup.ready.wait(120)
     seq = slot.seq
-    end = time.monotonic() + 120
-    while time.monotonic() < end:  # a frame of the new worker, with the confirmed method
-        f = slot.read(since=seq)
-        if f is not None:
-            break
-        time.sleep(0.005)
-    assert f is not None and f.method == "tfp", "no frames after the restart"
-    assert sup.applied_version == sup.config["version"]
+    # a frame of the new worker, with the confirmed method
+    f = wait_until(lambda: slot.read(since=seq), 120, "a frame after the restart",
+                   interval=0.005)
+    assert f.method == "tfp", "no frames of the confirmed method after the restart"
+    assert sup.applied_version == sup.config.version

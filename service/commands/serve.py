@@ -174,10 +174,11 @@ def _check_viewer(settings) -> None:
 def _remove_stale_segments() -> int:
     """Shared-memory files of a server that crashed (its pid is gone): removed, and counted.
 
-    Creating a ring or slot removes them too (:func:`driver.ring.create_shared_file`); this
+    Creating a ring or slot removes them too (:func:`shm.files.create_shared_file`); this
     pass only exists so that the start can say how many there were."""
-    from driver.ring import RING_PREFIX, remove_stale_files, shared_dirs
-    from service.frameslot import FRAME_PREFIX
+    from shm.files import remove_stale_files, shared_dirs
+    from shm.frameslot import FRAME_PREFIX
+    from shm.ring import RING_PREFIX
 
     dirs = {d for d in shared_dirs() if d.is_dir()}
     return sum(remove_stale_files(d, pre) for d in dirs for pre in (RING_PREFIX, FRAME_PREFIX))

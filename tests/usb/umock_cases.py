@@ -29,11 +29,11 @@ import usb.util  # noqa: E402
 from cfsr.datfile import read_dat, write_dat  # noqa: E402
 from driver import protocol as P  # noqa: E402
 from driver.acquisition import Acquisition  # noqa: E402
-from driver.ring import SpikeRing  # noqa: E402
 from driver.source import BlockFlags, CameraControl, ReplayControl, SourceState  # noqa: E402
 from driver.usb import UsbCameraSource  # noqa: E402
 from replay.camera_model import CameraModel  # noqa: E402
 from replay.pattern import pattern_recording  # noqa: E402
+from shm.ring import SpikeRing  # noqa: E402
 
 FB = 12_500
 FPB = 256

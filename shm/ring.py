@@ -10,30 +10,32 @@ read at their own pace.
 * Every block carries a sequence number, its first step index, flags, and the cumulative frame
   count before it, so a consumer that was overrun *detects* it, skips to fresh data, and counts
   exactly how many frames it lost (:attr:`RingReader.lost_frames`).
-* Each slot is a seqlock: the sequence word is invalidated before the payload is touched and set
-  after, so a consumer re-checks it after using the data and discards a torn read.
-
-The ordering argument relies on x86-64 total store order (writes become visible in program
-order); that is the platform this project targets.
+* Each slot is guarded by the package's seqlock (:mod:`shm.seqlock`): its sequence number is
+  the block number, invalidated before the payload is touched and set after, so a consumer
+  re-checks it after using the data and discards a torn read.
 """
 
 from __future__ import annotations
 
 import mmap
 import os
-import shutil
-import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from itertools import count
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SpikeRing", "RingReader", "RingBlock", "ring_dir", "remove_stale_files"]
+from shm.files import attach_shared_file, create_shared_file, release_shared_file
+from shm.seqlock import WRITING, Seqlock
+
+__all__ = ["RING_PREFIX", "RingBlock", "RingReader", "SpikeRing"]
+
+#: name prefix of the spike ring's shared-memory file
+RING_PREFIX = "cfsr-ring"
 
 _MAGIC = 0x474E4952_4B505343  # "CSPKRING"
-_VERSION = 1
+_VERSION = 2  # 2: slot sequence words follow shm.seqlock
 _HEADER_BYTES = 4096
 _SLOT_HEADER = 64  # 8 x int64
 _MAX_CONSUMERS = 8
@@ -43,102 +45,6 @@ _H_HEAD, _H_FRAMES, _H_BLOCKING, _H_WAITS, _H_CLOSED = 5, 6, 7, 8, 9
 _H_CPOS, _H_CACTIVE, _H_CPID = 16, 16 + _MAX_CONSUMERS, 16 + 2 * _MAX_CONSUMERS
 # slot header fields
 _S_SEQ, _S_INDEX, _S_NFRAMES, _S_FLAGS, _S_LOST, _S_CUM, _S_THOST = 0, 1, 2, 3, 4, 5, 6
-_EMPTY, _WRITING = -2, -1
-_names = count()
-
-
-#: name prefix of the spike ring's shared-memory file
-RING_PREFIX = "cfsr-ring"
-
-
-def shared_dirs() -> list[Path]:
-    """Every folder :func:`ring_dir` may pick: where a killed server's files can be."""
-    env = os.environ.get("CFSR_RING_DIR")
-    dirs = [Path(env)] if env else []
-    return [*dirs, Path("/dev/shm"), Path(tempfile.gettempdir())]
-
-
-def ring_dir(nbytes: int) -> Path:
-    """Where ring files live: ``$CFSR_RING_DIR``, else ``/dev/shm`` if it has room, else tmp."""
-    env = os.environ.get("CFSR_RING_DIR")
-    if env:
-        return Path(env)
-    shm = Path("/dev/shm")
-    try:
-        if shm.is_dir() and shutil.disk_usage(shm).free > 2 * nbytes:
-            return shm
-    except OSError:
-        pass
-    return Path(tempfile.gettempdir())
-
-
-def create_shared_file(
-    prefix: str, size: int, directory: str | os.PathLike | None = None
-) -> tuple[Path, mmap.mmap]:
-    """Create and map a new ``PREFIX-<pid>-...`` shared-memory file of ``size`` bytes.
-
-    Files left by a killed process are removed first; the name is unique per process and call.
-    Used by the spike ring and the service's frame slot.
-    """
-    d = Path(directory) if directory is not None else ring_dir(size)
-    remove_stale_files(d, prefix)
-    path = d / f"{prefix}-{os.getpid()}-{next(_names)}-{time.monotonic_ns() % 10**9}"
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-    try:
-        os.ftruncate(fd, size)
-        mm = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE)
-    finally:
-        os.close(fd)
-    return path, mm
-
-
-def attach_shared_file(path: str | os.PathLike) -> mmap.mmap:
-    """Map an existing shared-memory file made by :func:`create_shared_file`, read-write."""
-    fd = os.open(Path(path), os.O_RDWR)
-    try:
-        return mmap.mmap(
-            fd, os.fstat(fd).st_size, mmap.MAP_SHARED, mmap.PROT_READ | mmap.PROT_WRITE
-        )
-    finally:
-        os.close(fd)
-
-
-def release_shared_file(mm: mmap.mmap, path: Path, owner: bool) -> None:
-    """Unmap ``mm``; the creating process also deletes the file."""
-    try:
-        mm.close()
-    except BufferError:
-        pass  # a consumer still holds a view; the mapping goes with the process
-    if owner:
-        try:
-            path.unlink()
-        except FileNotFoundError:
-            pass
-
-
-def remove_stale_files(directory: str | os.PathLike, prefix: str) -> int:
-    """Delete ``PREFIX-<pid>-*`` files whose creating process is gone (a killed service)."""
-    n = 0
-    try:
-        entries = list(Path(directory).glob(prefix + "-*"))
-    except OSError:
-        return 0
-    for p in entries:
-        try:
-            pid = int(p.name[len(prefix) + 1 :].split("-", 1)[0])
-        except ValueError:
-            continue
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            try:
-                p.unlink()
-                n += 1
-            except OSError:
-                pass
-        except PermissionError:
-            pass
-    return n
 
 
 @dataclass
@@ -182,6 +88,7 @@ class SpikeRing:
         n = self.n_slots
         self._shdr = np.frombuffer(mm, np.int64, n * 8, _HEADER_BYTES).reshape(n, 8)
         self._sthost = self._shdr.view(np.float64)
+        self._lock = Seqlock(self._shdr[:, _S_SEQ])
         off = _HEADER_BYTES + n * _SLOT_HEADER
         off = (off + 4095) // 4096 * 4096
         self._data = np.frombuffer(
@@ -218,21 +125,23 @@ class SpikeRing:
         hdr[_H_VERSION] = _VERSION
         hdr[_H_MAGIC] = _MAGIC
         shdr = np.frombuffer(mm, np.int64, n_slots * 8, _HEADER_BYTES).reshape(n_slots, 8)
-        shdr[:, _S_SEQ] = _EMPTY
+        Seqlock(shdr[:, _S_SEQ]).reset()
         del hdr, shdr
         return cls(path, mm, owner=True)
 
     @classmethod
     def attach(cls, path: str | os.PathLike) -> SpikeRing:
+        """Map the ring another process created (consumers)."""
         return cls(Path(path), attach_shared_file(path), owner=False)
 
     def close(self) -> None:
-        """Unmap (and, in the creating process, delete the file)."""
+        """Unmap (and, in the creating process, say :meth:`finish` and delete the file)."""
         if self._mm is None:
             return
         if self.owner:
-            self._hdr[_H_CLOSED] = 1
+            self.finish()
         self._hdr = self._shdr = self._sthost = self._data = None  # type: ignore[assignment]
+        self._lock = None  # type: ignore[assignment]
         release_shared_file(self._mm, self.path, self.owner)
         self._mm = None  # type: ignore[assignment]
 
@@ -244,7 +153,19 @@ class SpikeRing:
 
     @property
     def frames_published(self) -> int:
+        """Frames written since the ring was created (the next block's ``cum_before``)."""
         return int(self._hdr[_H_FRAMES])
+
+    @property
+    def finished(self) -> bool:
+        """True once the producer said no more blocks will come (:meth:`finish`), so a
+        consumer in another process can drain the backlog and stop."""
+        return self._hdr is None or bool(self._hdr[_H_CLOSED])
+
+    def finish(self) -> None:
+        """Producer: tell consumers that nothing more will be written (the ring stays
+        mapped; :meth:`close` in the creating process says it too)."""
+        self._hdr[_H_CLOSED] = 1
 
     @property
     def blocking(self) -> bool:
@@ -267,7 +188,7 @@ class SpikeRing:
         flags: int = 0,
         lost_before: int = 0,
         t_host: float | None = None,
-        stop_waiting=None,
+        stop_waiting: Callable[[], bool] | None = None,
     ) -> int:
         """Publish packed frames ``data`` (n, frame_bytes) starting at step ``index``.
 
@@ -287,7 +208,7 @@ class SpikeRing:
                 self._wait_room(k, stop_waiting)
             s = k % self.n_slots
             sh = self._shdr[s]
-            sh[_S_SEQ] = _WRITING
+            self._lock.begin_write(s)
             m = part.shape[0]
             self._data[s, :m] = part
             sh[_S_INDEX] = index + a
@@ -296,13 +217,13 @@ class SpikeRing:
             sh[_S_LOST] = lost_before if a == 0 else 0
             sh[_S_CUM] = self._hdr[_H_FRAMES]
             self._sthost[s, _S_THOST] = th
-            sh[_S_SEQ] = k
+            self._lock.end_write(s, k)
             self._hdr[_H_FRAMES] += m
             self._hdr[_H_HEAD] = k + 1
             written += 1
         return written
 
-    def _wait_room(self, k: int, stop_waiting) -> None:
+    def _wait_room(self, k: int, stop_waiting: Callable[[], bool] | None) -> None:
         hdr = self._hdr
         waited = False
         checked = time.monotonic()
@@ -337,7 +258,9 @@ class SpikeRing:
                     pass
 
     # -- consumers --------------------------------------------------------------------------
-    def reader(self, *, start: str = "latest", register: bool = False, keep: int = 1):
+    def reader(
+        self, *, start: str = "latest", register: bool = False, keep: int = 1
+    ) -> RingReader:
         """A reader at the newest block (``start="latest"``) or the oldest held (``"oldest"``).
 
         ``register=True`` makes the producer honour this reader in ``blocking`` mode.
@@ -359,6 +282,9 @@ class RingReader:
         Frames this reader never got because the producer overwrote them.
     lost_blocks, overruns : int
         Blocks lost likewise, and how many times the reader found itself overrun.
+    skipped_frames : int
+        Frames passed over on purpose by :meth:`skip_to_latest` (not losses: the consumer
+        chose to show newer data).
     frames_read : int
         Frames delivered valid.
     """
@@ -374,6 +300,8 @@ class RingReader:
         else:
             raise ValueError(f"start must be 'latest' or 'oldest', got {start!r}")
         self._next_cum: int | None = None
+        self._skip_from: int | None = None  # _next_cum when skip_to_latest last jumped
+        self.skipped_frames = 0
         self.lost_frames = 0
         self.lost_blocks = 0
         self.overruns = 0
@@ -403,11 +331,18 @@ class RingReader:
         return max(0, self.ring.head - self.pos)
 
     def skip_to_latest(self, keep: int | None = None) -> None:
-        """Jump to the newest ``keep`` blocks (skipped frames are *not* ring losses)."""
+        """Jump to the newest ``keep`` blocks.
+
+        The frames jumped over are counted in :attr:`skipped_frames` (when the next block is
+        released), not in :attr:`lost_frames`: skipping is the consumer's choice, a loss is
+        the producer's overrun.
+        """
         head = self.ring.head
         k = self.keep if keep is None else max(1, keep)
         if head - self.pos > k:
             self.pos = head - k
+            if self._next_cum is not None:
+                self._skip_from = self._next_cum
             self._next_cum = None
 
     def poll(self) -> RingBlock | None:
@@ -423,9 +358,9 @@ class RingReader:
                 self.pos = max(self.pos, head - self.keep)
             s = self.pos % ring.n_slots
             sh = ring._shdr[s]
-            seq = int(sh[_S_SEQ])
+            seq = ring._lock.read(s)
             if seq != self.pos:
-                if seq == _WRITING or seq > self.pos:
+                if seq == WRITING or seq > self.pos:
                     self.overruns += 1
                     self.pos = max(self.pos + 1, ring.head - self.keep)
                     continue
@@ -447,7 +382,10 @@ class RingReader:
         """Finish with ``blk``; False if it was overwritten while in use (then discard it)."""
         ring = self.ring
         s = blk.seq % ring.n_slots
-        valid = int(ring._shdr[s, _S_SEQ]) == blk.seq
+        valid = ring._lock.unchanged(s, blk.seq)
+        if self._skip_from is not None:
+            self.skipped_frames += max(0, blk.cum_before - self._skip_from)
+            self._skip_from = None
         if self._next_cum is not None and blk.cum_before > self._next_cum:
             gap = blk.cum_before - self._next_cum
             self.lost_frames += gap

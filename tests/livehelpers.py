@@ -1,6 +1,8 @@
 """Helpers for integration tests: start the real service (``cfsr serve``) on a free loopback
-port in a subprocess, talk to it, and stop it. Not a test module (no ``test_`` prefix), and
-this folder is deliberately not a package (a ``usb`` package here would shadow pyusb)."""
+port in a subprocess, talk to it, and stop it; wait for a condition with a deadline.
+
+Not a test module (no ``test_`` prefix). Test modules import it as ``livehelpers``: pytest puts
+``tests/`` (a folder without ``__init__.py``) on ``sys.path`` for them, as for ``wheelenv``."""
 
 from __future__ import annotations
 
@@ -12,11 +14,15 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import httpx
 
-REPO = Path(__file__).resolve().parents[2]
+T = TypeVar("T")
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -27,22 +33,37 @@ def free_port() -> int:
 
 def segments_of(pid: int) -> list[Path]:
     """Shared-memory files (spike ring, frame slot) that process ``pid`` created."""
-    from driver.ring import RING_PREFIX, shared_dirs
-    from service.frameslot import FRAME_PREFIX
+    from shm.files import shared_dirs
+    from shm.frameslot import FRAME_PREFIX
+    from shm.ring import RING_PREFIX
 
     return sorted(p for d in set(shared_dirs()) if d.is_dir()
                   for pre in (RING_PREFIX, FRAME_PREFIX) for p in d.glob(f"{pre}-{pid}-*"))
 
 
-def wait_until(pred, timeout: float, what: str):
-    """Poll ``pred`` every 0.2 s until it returns something true (returned) or time is up."""
+def wait_until(
+    pred: Callable[[], T],
+    timeout: float,
+    what: str | Callable[[], str] = "condition",
+    *,
+    interval: float = 0.2,
+) -> T:
+    """Poll ``pred`` every ``interval`` s until it returns something true (returned) or
+    ``timeout`` s are up (AssertionError naming ``what``, which may be a callable so that the
+    message can show the last state seen).
+
+    The one poll-with-deadline loop of the tests: a test waits for a condition, never for a
+    fixed time, so it is as fast as the system allows and as patient as the deadline says.
+    """
     end = time.monotonic() + timeout
-    while time.monotonic() < end:
+    while True:
         v = pred()
         if v:
             return v
-        time.sleep(0.2)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+        if time.monotonic() >= end:
+            text = what() if callable(what) else what
+            raise AssertionError(f"timed out after {timeout} s waiting for {text}")
+        time.sleep(interval)
 
 
 def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:
@@ -93,18 +114,21 @@ class LiveServer:
             start_new_session=True,
         )
         fh.close()
-        end = time.monotonic() + self.startup_timeout
-        while time.monotonic() < end:
+
+        def healthy() -> bool:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.output()}")
             try:
-                if httpx.get(self.url + "/healthz", timeout=1).status_code == 200:
-                    return self
+                return httpx.get(self.url + "/healthz", timeout=1).status_code == 200
             except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        self.stop()
-        raise RuntimeError(f"server did not become healthy:\n{self.output()}")
+                return False
+
+        try:
+            wait_until(healthy, self.startup_timeout, "the server to become healthy")
+        except AssertionError:
+            self.stop()
+            raise RuntimeError(f"server did not become healthy:\n{self.output()}") from None
+        return self
 
     def output(self) -> str:
         try:
@@ -132,15 +156,15 @@ class LiveServer:
         r.raise_for_status()
         return r.json()
 
-    def wait_for(self, pred, timeout: float = 60.0, what: str = "condition"):
-        end = time.monotonic() + timeout
-        last = None
-        while time.monotonic() < end:
-            last = self.status()
-            if pred(last):
-                return last
-            time.sleep(0.2)
-        raise AssertionError(f"timed out waiting for {what}; last status: {last}")
+    def wait_for(self, pred, timeout: float = 60.0, what: str = "condition") -> dict:
+        """Poll ``/api/status`` until ``pred(status)`` holds; returns that status."""
+        last: dict = {}
+
+        def check() -> dict | None:
+            last["status"] = self.status()
+            return last["status"] if pred(last["status"]) else None
+
+        return wait_until(check, timeout, lambda: f"{what}; last status: {last.get('status')}")
 
     def ws_url(self, query: str = "") -> str:
         return f"ws://127.0.0.1:{self.port}/ws" + ("?" + query if query else "")
@@ -194,6 +218,3 @@ def ws_frames(server: LiveServer, n: int, *, timeout: float = 60.0, method: str 
                 out.append(d)
     return out
 
-
-def sys_path_note() -> str:
-    return str(sys.path[:3])

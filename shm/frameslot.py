@@ -1,9 +1,11 @@
 """The latest-frame slot: shared memory from the worker process to the web process.
 
 Holds exactly one frame (the newest): the 8-bit display image, the coarse and fine masks, and
-the metadata of the step, behind a seqlock (the writer makes the sequence odd while writing;
-a reader retries if the sequence changed under it). A second region holds the worker's live
-counters (heartbeat, timings, drops) as float64 words the worker updates in place.
+the metadata of the step, behind the package's seqlock (:mod:`shm.seqlock`; the sequence
+number is the frame number, so a reader asks for "newer than the one I have" and retries if
+the writer was busy). A second region holds the worker's live counters (heartbeat, timings,
+drops) as float64 words the worker updates in place: single words, read without the lock,
+because each one is meaningful on its own.
 """
 
 from __future__ import annotations
@@ -16,12 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
+from shm.files import attach_shared_file, create_shared_file, release_shared_file
+from shm.seqlock import EMPTY, WRITING, Seqlock
+
+__all__ = ["FRAME_PREFIX", "STAT_FIELDS", "FrameSlot", "SlotFrame"]
+
 #: name prefix of the latest-frame slot's shared-memory file
 FRAME_PREFIX = "cfsr-frame"
 
-__all__ = ["FrameSlot", "SlotFrame", "STAT_FIELDS"]
-
-_MAGIC = 0x544F4C53_4D415246  # "FRAMSLOT"
+_MAGIC = 0x544F4C53_4D415247  # "GRAMSLOT": version 2, the sequence word follows shm.seqlock
 _HDR = 1024
 _STATS_OFF = 1024
 _PAYLOAD_OFF = 4096
@@ -52,6 +57,8 @@ STAT_FIELDS = (
 
 @dataclass
 class SlotFrame:
+    """A consistent copy of the slot's frame (``seq`` is its sequence number)."""
+
     seq: int
     step: int
     frame_no: int
@@ -76,6 +83,7 @@ class FrameSlot:
         self.path, self._mm, self.owner = path, mm, owner
         self._i = np.frombuffer(mm, np.int64, _HDR // 8, 0)
         self._f = self._i.view(np.float64)
+        self._lock = Seqlock(self._i[_SEQ : _SEQ + 1])
         if self._i[_M] != _MAGIC:
             raise ValueError(f"{path}: not a frame slot")
         self.max_pixels = int(self._i[_MAXPIX])
@@ -90,19 +98,16 @@ class FrameSlot:
     @classmethod
     def create(cls, max_pixels: int = 1024 * 1024, directory: str | None = None) -> FrameSlot:
         size = _PAYLOAD_OFF + 3 * max_pixels
-        from driver.ring import create_shared_file
-
         path, mm = create_shared_file(FRAME_PREFIX, size, directory)
         hdr = np.frombuffer(mm, np.int64, _HDR // 8, 0)
         hdr[_MAXPIX] = max_pixels
+        Seqlock(hdr[_SEQ : _SEQ + 1]).reset()
         hdr[_M] = _MAGIC
         del hdr
         return cls(path, mm, owner=True)
 
     @classmethod
     def attach(cls, path: str | os.PathLike) -> FrameSlot:
-        from driver.ring import attach_shared_file
-
         return cls(Path(path), attach_shared_file(path), owner=False)
 
     def close(self) -> None:
@@ -110,8 +115,7 @@ class FrameSlot:
             return
         self._i = self._f = self._stats = self._img = None  # type: ignore[assignment]
         self._masks = {}
-        from driver.ring import release_shared_file
-
+        self._lock = None  # type: ignore[assignment]
         release_shared_file(self._mm, self.path, self.owner)
         self._mm = None  # type: ignore[assignment]
 
@@ -132,8 +136,8 @@ class FrameSlot:
         if h * w > self.max_pixels:
             raise ValueError(f"frame {w} x {h} exceeds the slot ({self.max_pixels} pixels)")
         i, f = self._i, self._f
-        seq = int(i[_SEQ])
-        i[_SEQ] = seq + 1  # odd: writing
+        frame_no = int(i[_FRAMENO]) + 1
+        self._lock.begin_write(0)
         self._img[: h * w] = image.reshape(-1)
         flags = 0
         for k, name in enumerate(self.MASK_NAMES):
@@ -142,7 +146,7 @@ class FrameSlot:
                 self._masks[name][: h * w] = np.asarray(m, np.uint8).reshape(-1)
                 flags |= 1 << k
         i[_W], i[_H], i[_STEP], i[_FLAGS] = w, h, step, flags
-        i[_FRAMENO] += 1
+        i[_FRAMENO] = frame_no
         f[_TPUB], f[_TARR], f[_COMPUTE], f[_GAIN], f[_LAT] = (
             time.monotonic(),
             t_arrival,
@@ -152,30 +156,34 @@ class FrameSlot:
         )
         name = method.encode("ascii", "replace")[: _NAME_LEN - 1]
         self._mm[_NAME_OFF : _NAME_OFF + _NAME_LEN] = name.ljust(_NAME_LEN, b"\0")
-        i[_SEQ] = seq + 2
-
-    def set_stat(self, name: str, value: float) -> None:
-        self._stats[STAT_FIELDS.index(name)] = value
+        self._lock.end_write(0, frame_no)
 
     def stats_array(self) -> np.ndarray:
+        """The worker's counters (:data:`STAT_FIELDS`, in order) as a writable float64 view
+        into shared memory: the worker updates them in place, one word at a time."""
         return self._stats
 
     # -- reader (web process) -------------------------------------------------------------------
     @property
     def seq(self) -> int:
-        return int(self._i[_SEQ])
+        """Sequence number of the newest frame (negative: none yet, or being written)."""
+        return self._lock.read(0)
 
     def stats(self) -> dict[str, float]:
+        """A copy of the worker's counters by name."""
         return {k: float(v) for k, v in zip(STAT_FIELDS, self._stats, strict=True)}
 
-    def read(self, *, since: int = -1, retries: int = 50) -> SlotFrame | None:
-        """A consistent copy of the newest frame, or None if none newer than ``since``."""
+    def read(self, *, since: int | None = None, retries: int = 50) -> SlotFrame | None:
+        """A consistent copy of the newest frame, or None if there is none, it is the one
+        numbered ``since`` (the reader has it already), or the writer kept it busy for all
+        ``retries``."""
         i, f = self._i, self._f
+        lock = self._lock
         for _ in range(retries):
-            s1 = int(i[_SEQ])
-            if s1 == 0 or s1 == since:
+            s1 = lock.read(0)
+            if s1 == EMPTY or s1 == since:
                 return None
-            if s1 & 1:
+            if s1 == WRITING:
                 time.sleep(0.0002)
                 continue
             w, h, step, flags = int(i[_W]), int(i[_H]), int(i[_STEP]), int(i[_FLAGS])
@@ -188,7 +196,7 @@ class FrameSlot:
             meta = (int(i[_FRAMENO]), float(f[_TPUB]), float(f[_TARR]), float(f[_COMPUTE]))
             gain, lat = float(f[_GAIN]), float(f[_LAT])
             name = bytes(self._mm[_NAME_OFF : _NAME_OFF + _NAME_LEN]).split(b"\0")[0].decode()
-            if int(i[_SEQ]) == s1:
+            if lock.unchanged(0, s1):
                 return SlotFrame(
                     seq=s1,
                     step=step,

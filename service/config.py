@@ -1,0 +1,134 @@
+"""The live configuration as typed values, from the HTTP handler to the worker process.
+
+Three frozen dataclasses, each validated when it is made and then passed on as is:
+
+* :class:`DisplayScale`: how rates become 8-bit pixels (gain mode and gain);
+* :class:`LiveConfig`: what the user chose (method and parameters as a
+  :class:`cfsr.config.MethodConfig`, display scale, frame-rate cap); the runtime stores one
+  and :meth:`LiveConfig.changed` makes the next from a partial update;
+* :class:`WorkerConfig`: what the worker needs of it (the effective gain resolved against
+  the current source), sent over the process queue and answered by ``version``.
+
+Why dataclasses and not the HTTP models: the same values come from the command line
+(``cfsr serve --method --param --max-fps``) and from HTTP, and the worker must not depend on
+the web stack's model classes; the HTTP models (:mod:`service.models`) take their bounds from
+the same constants, for the OpenAPI document.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from cfsr.config import MethodConfig
+from service.settings import MAX_FPS_RANGE
+
+__all__ = [
+    "GAIN_MODES",
+    "DisplayScale",
+    "GainMode",
+    "LiveConfig",
+    "WorkerConfig",
+    "check_max_fps",
+]
+
+GainMode = Literal["recording", "auto", "fixed"]
+#: recording: the source's display gain if it has one, else auto; auto: per frame; fixed: gain
+GAIN_MODES: tuple[GainMode, ...] = ("recording", "auto", "fixed")
+
+
+@dataclass(frozen=True)
+class DisplayScale:
+    """Display gain: the firing rate (spikes/step) shown as white, or how to choose it."""
+
+    gain_mode: GainMode = "recording"
+    gain: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.gain_mode not in GAIN_MODES:
+            raise ValueError(
+                f"display gain_mode {self.gain_mode!r}: use recording, auto or fixed"
+            )
+        g = self.gain
+        if g is not None and (
+            isinstance(g, bool)
+            or not isinstance(g, int | float)
+            or not (math.isfinite(g) and 0 < g <= 1)
+        ):
+            raise ValueError(f"display gain must be in (0, 1] spikes/step, got {g!r}")
+        if self.gain_mode == "fixed" and not g:
+            raise ValueError("display gain_mode 'fixed' needs a gain (spikes/step)")
+
+    def changed(self, changes: Mapping[str, Any]) -> DisplayScale:
+        """This scale with the given fields replaced (``None`` values keep the old ones)."""
+        keep = {"gain_mode": self.gain_mode, "gain": self.gain}
+        keep.update({k: v for k, v in changes.items() if v is not None})
+        return DisplayScale(**keep)
+
+    def effective_gain(self, source_gain: float | None) -> float | None:
+        """The gain the worker uses (None: automatic per frame), given the source's own."""
+        if self.gain_mode == "fixed" and self.gain:
+            return float(self.gain)
+        if self.gain_mode == "recording" and source_gain:
+            return float(source_gain)
+        return None
+
+
+def check_max_fps(max_fps: float) -> float:
+    """``max_fps`` as a float within :data:`~service.settings.MAX_FPS_RANGE`, else ValueError
+    (written so that NaN fails too: every comparison with NaN is false)."""
+    lo, hi = MAX_FPS_RANGE
+    v = float(max_fps)
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ValueError(f"max_fps must be in [{lo}, {hi}] frames/s, got {max_fps}")
+    return v
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """The service's configuration: method, display scale and frame-rate cap."""
+
+    method: MethodConfig
+    display: DisplayScale = field(default_factory=DisplayScale)
+    max_fps: float = 30.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "max_fps", check_max_fps(self.max_fps))
+
+    def changed(
+        self,
+        *,
+        method: str | None = None,
+        params: Mapping[str, Any] | None = None,
+        display: Mapping[str, Any] | None = None,
+        max_fps: float | None = None,
+    ) -> LiveConfig:
+        """The next configuration after a partial update, all or nothing (ValueError naming
+        the first bad value; this one is unchanged). Parameters not given keep their
+        values, except on a change of method, which starts from its defaults."""
+        m = self.method.replace(method=method, params=params)
+        d = self.display if display is None else self.display.changed(display)
+        return LiveConfig(m, d, self.max_fps if max_fps is None else max_fps)
+
+    def public(self) -> dict[str, Any]:
+        """The JSON shape of ``GET /api/config`` (without the effective gain)."""
+        return {
+            "method": self.method.method,
+            "params": dict(self.method.params),
+            "display": {"gain_mode": self.display.gain_mode, "gain": self.display.gain},
+            "max_fps": self.max_fps,
+        }
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    """One configuration of the worker process; ``version`` is issued by the supervisor and
+    comes back in the worker's answer (applied or rejected)."""
+
+    method: MethodConfig
+    gain: float | None = None  # spikes/step shown as white; None: automatic per frame
+    max_fps: float = 30.0
+    deterministic: bool = False  # read every ring block (replay mode "fast", tests)
+    version: int = 0
