@@ -40,6 +40,8 @@ __all__ = [
     "prev_spike",
     "next_spike",
     "range_times",
+    "isi_in_words",
+    "count_between",
 ]
 
 
@@ -297,3 +299,38 @@ def range_times(words, k, lo, a, b, times):  # pragma: no cover - numba
     for q in range((a - lo) >> 6, ((b - 1 - lo) >> 6) + 1):
         ns = word_spikes(_window(words, k, lo, q, a, b), lo + 64 * q, times, ns)
     return ns
+
+
+@njit(cache=True, inline="always")
+def isi_in_words(words, r, lo, c, a, b):  # pragma: no cover - numba
+    """The TFI interval (Eq. 3) of word row ``r`` at step ``c``, spikes searched in ``[a, b)``.
+
+    ``s_next - s_prev`` with ``s_prev <= c < s_next``; an interval open on one side is the
+    larger of the steps to the search range's end and the neighbouring whole interval, and
+    ``b - a + 1`` without any spike (the numbers of :func:`cfsr.methods.tfi.tfi_rate`, by bit
+    scans, no spike list)."""
+    ip = prev_spike(words, r, lo, c, a)
+    i_n = next_spike(words, r, lo, c + 1, b)
+    if ip >= 0 and i_n >= 0:
+        return i_n - ip
+    if ip >= 0:
+        bound = b - ip
+        pp = prev_spike(words, r, lo, ip - 1, a)
+        return max(bound, ip - pp) if pp >= 0 else bound
+    if i_n >= 0:
+        bound = i_n - a + 1
+        nn = next_spike(words, r, lo, i_n + 1, b)
+        return max(bound, nn - i_n) if nn >= 0 else bound
+    return b - a + 1
+
+
+@njit(cache=True, inline="always")
+def count_between(words, k, lo, a, b):  # pragma: no cover - numba
+    """Spikes of row ``k`` in steps ``[a, b)``: masked popcounts of the words covering the
+    span only (:func:`count_range` without a whole-row prefix, for a few short spans)."""
+    c = 0
+    if b <= a:
+        return c
+    for q in range((a - lo) >> 6, ((b - 1 - lo) >> 6) + 1):
+        c += np.int64(popcount(_window(words, k, lo, q, a, b)))
+    return c

@@ -1,70 +1,95 @@
-"""Accuracy on the simulator's disk, fan and car scenes (measured by ``cfsr.evaluation``).
+"""Accuracy on every simulator scene (measured by ``cfsr.evaluation``; issue 13's claims).
 
-Claims held with margins (dB) on a reduced geometry (200 x 125 px, 1000 steps, two output
-frames) so the test stays quick; docs/methods.md has the full-size table.
+The geometry and times are the README table's (``cfsr bench``): 400 x 250 px, 2000 steps,
+outputs at steps 800, 1000 and 1200, display = rate / rate_scale * 255. Claims, with margins:
 
-* CFSR beats TFI and the best TFP window (trailing or centred) inside the true motion region,
-  and is no worse than the best TFP over the whole frame.
-* CSR sits between: better than TFI, worse than CFSR (whole frame and motion region, averaged
-  over the scenes; on the fan CSR is not better than TFI without shot noise -- its bright blades
-  have too few distinct ISIs for the coarse test, see docs/methods.md).
-* The fine mask matches the true motion mask better (IoU) than the coarse one.
+* CFSR's PSNR is above the best of TFI, every TFP window (8-160 steps, trailing and
+  centred), TFA, TFSTP and SNM on every scene, over the whole frame and inside the true motion
+  mask, without noise and (disk, fan, car) with temporal shot noise;
+* CSR is above the best TFP window over the whole frame on every scene;
+* the coarse mask's IoU with the true motion is at least 0.6 on disk, fan and car; the fine
+  mask's at least 0.8 on disk (fan and car are below: expected failures, see docs/methods.md).
 """
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from cfsr.evaluation import evaluate
+from cfsr.simulate import SCENES
 
-SCENES = ("disk", "fan", "car")
 TFPS = [f"tfp:window={w},mode={m}" for w in (8, 16, 32, 64, 160) for m in ("trailing", "centred")]
-METHODS = ["tfi", *TFPS, "csr", "cfsr"]
+BASELINES = ["tfi", *TFPS, "tfa", "tfstp", "snm"]
+GEOMETRY = {"steps": 2000, "times": [800, 1000, 1200], "height": 250, "width": 400}
+MARGIN_CFSR = 0.5  # dB above the best baseline (the smallest measured lead is ~1.5 dB, dim)
+MARGIN_CSR = 1.0  # dB above the best TFP window (the smallest measured lead is ~2.5 dB, noisy)
+SHOT_SCENES = ("disk", "fan", "car")
+
+pytestmark = pytest.mark.slow
 
 
-def _table(noise):
-    rows = evaluate(
-        METHODS, list(SCENES), steps=1000, times=[700, 760], height=125, width=200, noise=noise
-    )
-    return {(r["name"] if r["name"] != "tfp" else r["method"], r["scene"]): r for r in rows}
+def _table(scenes, noise):
+    rows = evaluate([*BASELINES, "csr", "cfsr"], list(scenes), noise=noise, **GEOMETRY)
+    return {(r["method"], r["scene"]): r for r in rows}
 
 
-@pytest.fixture(scope="module", params=[None, "shot"], ids=["ideal", "shot-noise"])
-def table(request):
-    return request.param, _table(request.param)
+@pytest.fixture(scope="module")
+def table():
+    return _table(sorted(SCENES), None)
 
 
-def _best_tfp(tab, scene, key):
-    return max(tab[(t, scene)][key] for t in TFPS)
+@pytest.fixture(scope="module")
+def shot_table():
+    return _table(SHOT_SCENES, "shot")
 
 
-@pytest.mark.parametrize("scene", SCENES)
-def test_cfsr_beats_tfi_and_every_tfp_window(table, scene):
-    noise, tab = table
-    cf = tab[("cfsr", scene)]
-    tfi = tab[("tfi", scene)]
-    assert cf["psnr_motion"] > tfi["psnr_motion"] + 5.0, (noise, scene)
-    assert cf["psnr_motion"] > _best_tfp(tab, scene, "psnr_motion") + 1.5, (noise, scene)
-    assert cf["psnr_all"] > _best_tfp(tab, scene, "psnr_all") + 1.5, (noise, scene)
-    assert cf["ssim"] > max(tab[(t, scene)]["ssim"] for t in TFPS), (noise, scene)
+def _best(tab, scene, key, names):
+    vals = [(tab[(m, scene)][key], m) for m in names if tab[(m, scene)][key] is not None]
+    return max(vals)
 
 
-def test_csr_sits_between(table):
-    noise, tab = table
+def _cfsr_first(tab, scene):
     for key in ("psnr_all", "psnr_motion"):
-        mean = {m: np.mean([tab[(m, s)][key] for s in SCENES]) for m in ("tfi", "csr", "cfsr")}
-        assert mean["tfi"] + 0.5 < mean["csr"] < mean["cfsr"] - 3.0, (noise, key, mean)
-    for s in SCENES:
-        assert tab[("csr", s)]["psnr_all"] < tab[("cfsr", s)]["psnr_all"] - 3.0
-        if noise is not None or s != "fan":
-            assert tab[("csr", s)]["psnr_motion"] > tab[("tfi", s)]["psnr_motion"], (noise, s)
+        cf = tab[("cfsr", scene)][key]
+        if cf is None:  # the static scene has no motion region
+            assert key == "psnr_motion" and scene == "static"
+            continue
+        best, who = _best(tab, scene, key, BASELINES)
+        assert cf > best + MARGIN_CFSR, (scene, key, cf, who, best)
 
 
-@pytest.mark.parametrize("scene", SCENES)
-def test_fine_mask_iou_beats_coarse(table, scene):
-    noise, tab = table
-    row = tab[("cfsr", scene)]
-    assert row["iou_fine"] > row["iou_coarse"] + 0.1, (noise, scene, row)
-    if scene != "fan":  # the fan's true mask is the blades, the swept disc is ~2x larger
-        assert row["iou_fine"] > 0.55, (noise, scene, row)
+@pytest.mark.parametrize("scene", sorted(SCENES))
+def test_cfsr_beats_every_baseline(table, scene):
+    _cfsr_first(table, scene)
+
+
+@pytest.mark.parametrize("scene", SHOT_SCENES)
+def test_cfsr_beats_every_baseline_under_shot_noise(shot_table, scene):
+    _cfsr_first(shot_table, scene)
+
+
+@pytest.mark.parametrize("scene", sorted(SCENES))
+def test_csr_beats_the_best_tfp_window(table, scene):
+    best, who = _best(table, scene, "psnr_all", TFPS)
+    csr = table[("csr", scene)]["psnr_all"]
+    assert csr > best + MARGIN_CSR, (scene, csr, who, best)
+
+
+@pytest.mark.parametrize("scene", ["disk", "fan", "car"])
+def test_coarse_mask_finds_the_motion(table, scene):
+    for name in ("csr", "cfsr"):
+        assert table[(name, scene)]["iou_coarse"] >= 0.6, (name, scene)
+
+
+def test_fine_mask_finds_the_disk(table):
+    assert table[("cfsr", "disk")]["iou_fine"] >= 0.8
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 13 open: fine-mask IoU 0.46 (fan) and 0.73 (car); MOG marks the background a "
+    "blade or the car left within its 352-step history (docs/methods.md)",
+)
+@pytest.mark.parametrize("scene", ["fan", "car"])
+def test_fine_mask_iou_on_fan_and_car(table, scene):
+    assert table[("cfsr", scene)]["iou_fine"] >= 0.8

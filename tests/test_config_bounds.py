@@ -17,6 +17,7 @@ import math
 import time
 
 import pytest
+from livehelpers import wait_until
 
 from cfsr.methods import get_method, methods, resolve_params
 from cfsr.methods.registry import MAX_UNPACKED_STEPS, MAX_WINDOW_STEPS, Param
@@ -157,17 +158,18 @@ def service(tmp_path_factory):
 
 def _frame_after(rt, since: float, method: str | None = None, timeout: float = 120.0):
     """The first frame published after monotonic time ``since`` (by ``method``), or fail."""
-    end = time.monotonic() + timeout
-    seq = -1
-    while time.monotonic() < end:
+    seq = None
+
+    def newer():
+        nonlocal seq
         f = rt.slot.read(since=seq)
         if f is None:
-            time.sleep(0.01)
-            continue
+            return None
         seq = f.seq
-        if f.t_arrival > since and (method is None or f.method == method):
-            return f
-    pytest.fail(f"no {method or ''} frame within {timeout} s: the worker stopped publishing")
+        return f if f.t_arrival > since and (method is None or f.method == method) else None
+
+    return wait_until(newer, timeout, f"a {method or ''} frame: the worker stopped publishing",
+                      interval=0.01)
 
 
 def test_out_of_range_config_is_422_and_changes_nothing(service):
@@ -212,7 +214,7 @@ def test_config_the_worker_rejects_is_422_and_not_stored(service, monkeypatch):
     assert "rejected by the worker" in r.text and "window" in r.text
     assert client.get("/api/config").json() == before
     assert rt.worker.applied_version == applied
-    assert rt.worker.config["params"] == before["params"]  # a restart would use the good one
+    assert rt.worker.config.method.params == before["params"]  # a restart would use the good one
     st = client.get("/api/status").json()["worker"]
     assert st["config_version"] == st["applied_version"] == applied
     assert any("window" in e["message"] for e in st["last_errors"])
@@ -226,9 +228,8 @@ def test_slow_worker_answer_is_202_pending_then_applied(service, monkeypatch):
     assert r.status_code == 202, r.text
     body = r.json()
     assert body["state"] == "pending" and body["params"]["window"] == 120
-    end = time.monotonic() + 30
-    while rt.worker.applied_version < body["version"] and time.monotonic() < end:
-        time.sleep(0.02)
+    wait_until(lambda: rt.worker.applied_version >= body["version"], 30,
+               "the worker's late answer", interval=0.02)
     assert rt.worker.applied_version == body["version"]
     assert client.get("/api/config").json()["params"]["window"] == 120
     monkeypatch.undo()

@@ -16,7 +16,7 @@ import pytest
 import cfsr
 from cfsr._words import PackedWindow
 from cfsr.methods import cfsr_fine as cf
-from cfsr.methods.csr import csr_frames, static_length
+from cfsr.methods.csr import csr_frames, span_estimator, static_length
 from cfsr.methods.daisi import daisi_strength
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import get_method, resolve_params
@@ -57,7 +57,8 @@ def test_history_scan_equals_stand_alone_kernels(trial):
     got = cf._history(PackedWindow.from_frames(s), c, p)
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     cs = [x for x in cs if x >= 0]
-    hp = {**p, "tfp_window": p["mog_window"], "static_span": 0}
+    # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
+    hp = {**p, "tfp_window": p["mog_window"], "static_span": 0, "distinction": "isi_set"}
     rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
     np.testing.assert_array_equal(got["rates"], rates)
     np.testing.assert_array_equal(got["coarse"], masks[-1])
@@ -193,7 +194,8 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
         got = cf._history(PackedWindow.from_frames(s), c, p)
     assert not got["coarse"].any()
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
-    hp = {**p, "tfp_window": p["mog_window"], "static_span": 0}
+    # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
+    hp = {**p, "tfp_window": p["mog_window"], "static_span": 0, "distinction": "isi_set"}
     rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
     assert not masks.any()
     np.testing.assert_array_equal(got["rates"], rates)
@@ -203,7 +205,7 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
         c,
         window=static_length(p),
         mode=p["tfp_mode"],
-        estimator=p["static_estimator"],
+        estimator=span_estimator(p),  # the span rule; fine_stage applies the steady check
         max_isi=p["max_isi"],
     )
     np.testing.assert_array_equal(got["tfp"], want_tfp)
@@ -260,7 +262,9 @@ def test_fine_mask_on_the_cues_bounding_box_equals_the_whole_frame(trial):
     cues[2] |= rng.random((h, w)) < 0.002
     kw = {"close_size": (0, 5, 9)[trial % 3], "min_area": (1, 16)[trial % 2], "dilate": trial % 3}
     got = cf.fine_mask(*cues, **kw)
-    want = cf._fine_mask_crop(
+    from cfsr.methods.masks import _regularise_crop
+
+    want = _regularise_crop(
         cues[0] | cues[1] | cues[2], kw["close_size"], kw["min_area"], kw["dilate"]
     )
     np.testing.assert_array_equal(got, want)

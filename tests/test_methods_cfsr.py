@@ -284,8 +284,17 @@ def test_csr_uses_tfi_on_dynamic_and_tfp_on_static(est):
 
     spikes, truth = moving_bars(steps=500)
     t = 450
+    # the paper's reading of CSR (Eq. 5-7): distinct-ISI distinction, TFI on the dynamic region
     rate, masks = cfsr.reconstruct(
-        spikes, "csr", [t], theta=3, return_masks=True, static_estimator=est
+        spikes,
+        "csr",
+        [t],
+        theta=3,
+        return_masks=True,
+        static_estimator=est,
+        distinction="isi_set",
+        dynamic_estimator="tfi",
+        static_span=0,
     )
     m = masks["coarse"][0]
     assert m.any() and (~m).any()

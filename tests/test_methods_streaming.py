@@ -96,7 +96,16 @@ def test_large_absolute_step_indices(method):
         np.testing.assert_array_equal(a.masks["fine"], b.masks["fine"])
 
 
-def test_csr_packed_path_equals_unpacked():
+@pytest.mark.parametrize(
+    "params",
+    [
+        {},  # steady distinction, steady static check, steady dynamic region
+        {"distinction": "isi_set"},
+        {"distinction": "isi_set", "static_estimator": "isi", "dynamic_estimator": "tfi"},
+        {"static_estimator": "tfp", "dynamic_estimator": "tfi"},
+    ],
+)
+def test_csr_packed_path_equals_unpacked(params):
     """The packed CSR path (used by the library and the live worker) equals csr_frames."""
     from cfsr._bits import pack_frames
     from cfsr.layout import Layout
@@ -108,10 +117,12 @@ def test_csr_packed_path_equals_unpacked():
     base = rng.uniform(0.02, 0.6, (h, w))
     wobble = 0.3 * np.sin(np.arange(t)[:, None, None] / 9.0 + np.arange(w)[None, None, :])
     rate = np.clip(base[None] * (1 + wobble * (np.arange(w) > 12)), 0, 1)
-    s = (rng.random((t, h, w)) < rate).astype(np.uint8)
+    # integrate-and-fire pixels (random phase), so the left half is steady and the right moves
+    level = np.cumsum(rate, axis=0) + rng.random((h, w))
+    s = np.diff(np.floor(level), axis=0, prepend=np.floor(level[:1] - rate[:1])).astype(np.uint8)
     lay = Layout(w, h)
     pk = pack_frames(s)
-    p = resolve_params(get_method("csr"), {})
+    p = resolve_params(get_method("csr"), params)
     for c in (0, 150, 350, 699):
         rates, masks, _ = csr_frames(s, [c], p)
         r, m = csr_frame_packed(pk, lay, c, p)

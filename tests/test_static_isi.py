@@ -169,9 +169,11 @@ def test_finite_and_bounded(n, w, p, seed, data):
 def test_defaults_and_presets():
     for name in ("csr", "cfsr"):
         m = get_method(name)
-        assert resolve_params(m, {})["static_estimator"] == "isi"
+        assert resolve_params(m, {})["static_estimator"] == "steady"
+        assert resolve_params(m, {})["distinction"] == "steady"
         for preset in ("paper", "simulated"):
             assert m.presets[preset]["static_estimator"] == "tfp"
+            assert m.presets[preset]["distinction"] == "isi_set"
     assert resolve_params(get_method("cfsr"), {})["mog_estimator"] == "tfp"
     with pytest.raises(ValueError):
         resolve_params(get_method("csr"), {"static_estimator": "median"})

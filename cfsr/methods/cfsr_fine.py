@@ -5,7 +5,10 @@ the calibration of every default are in docs/methods.md):
 
 1. **CSR history** (:mod:`cfsr.methods.csr`): CSR frames at ``t - k * mog_stride`` for
    ``k = mog_frames - 1 .. 0`` (oldest first, the last one is t), their static region a TFP of
-   ``mog_window`` steps. The coarse mask at t (Eq. 6) is the ``coarse`` output.
+   ``mog_window`` steps (the paper's CSR, Eq. 5-7). The ``coarse`` output is the coarse mask
+   at t: the steady-interval mask (:mod:`cfsr.methods.steady`, default) or Eq. 6's
+   (``distinction = isi_set``); with ``static_estimator = steady`` the static estimate at t
+   is kept only where t's own interval agrees with it (the TFI elsewhere).
 2. **MOG** (:mod:`cfsr.methods.mog`, Eq. 8-9): a fresh ``bgsegm`` MOG model learns the history
    on the 8-bit scale (``mog_gain``: rate shown as 255, 0 = the 99.5th percentile of the CSR
    frame at t), gives the background B, and ``|f_t - B| >= phi0`` marks moving objects (phi0
@@ -53,6 +56,7 @@ from numba import njit, prange
 from cfsr._words import (
     PackedWindow,
     count_range,
+    isi_in_words,
     next_spike,
     prefix_counts,
     prev_spike,
@@ -60,14 +64,25 @@ from cfsr._words import (
     row_words,
 )
 from cfsr.methods.atsr import atsr_fuse, atsr_fuse_isi
-from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, csr_window, static_length
+from cfsr.methods.csr import (
+    CSR_PARAMS,
+    CSR_PRESETS,
+    csr_window,
+    span_estimator,
+    static_checked,
+    static_length,
+    steady_parts,
+    uses_steady,
+)
 from cfsr.methods.daisi import daisi_from_times, log_table
 from cfsr.methods.distinction import distinct_in_words
+from cfsr.methods.masks import fine_mask
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 from cfsr.methods.staticgate import span_counts, span_isi_rate, static_gate
+from cfsr.methods.steady import steady_range
 from cfsr.methods.tfp import STATIC_ESTIMATORS, span_rate, tfp_span
 
 __all__ = ["fine_mask", "fine_stage", "cfsr_window"]
@@ -242,24 +257,6 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
 
 
 @njit(cache=True, inline="always")
-def _isi_words(words, r, lo, c, a, b):  # pragma: no cover - numba
-    """:func:`isi_from_times` at step ``c`` for word row ``r``, by bit scans (no spike list)."""
-    ip = prev_spike(words, r, lo, c, a)
-    i_n = next_spike(words, r, lo, c + 1, b)
-    if ip >= 0 and i_n >= 0:
-        return i_n - ip
-    if ip >= 0:
-        bound = b - ip
-        pp = prev_spike(words, r, lo, ip - 1, a)
-        return max(bound, ip - pp) if pp >= 0 else bound
-    if i_n >= 0:
-        bound = i_n - a + 1
-        nn = next_spike(words, r, lo, i_n + 1, b)
-        return max(bound, nn - i_n) if nn >= 0 else bound
-    return b - a + 1
-
-
-@njit(cache=True, inline="always")
 def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no cover - numba
     """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
     ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``."""
@@ -359,7 +356,7 @@ def _static_kernel(
                     tfp[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
                 elif isi_est[j]:  # fewer than two spikes in the span: the TFI at its step
                     e = cents[j]
-                    iv = _isi_words(words, r, lo, e, max(0, e - m), min(n_all, e + m + 1))
+                    iv = isi_in_words(words, r, lo, e, max(0, e - m), min(n_all, e + m + 1))
                     tfp[j, y, x] = np.float32(1.0 / iv)
                 else:
                     tfp[j, y, x] = np.float32(cnt / lens[j])
@@ -394,7 +391,7 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, 
             r = base + step * x
             for k in range(k_count):
                 e = ends[k]
-                isi[k, y, x] = _isi_words(words, r, lo, e, max(0, e - m), min(n, e + m + 1))
+                isi[k, y, x] = isi_in_words(words, r, lo, e, max(0, e - m), min(n, e + m + 1))
             if ub[y, x] < theta:
                 for k in range(k_count):
                     counts[k, y, x] = ub[y, x]
@@ -404,55 +401,6 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, 
                 counts[k, y, x] = distinct_in_words(
                     words, r, nw, lo, max(0, e - span + 1), e + 1, span, big, theta
                 )
-
-
-def fine_mask(
-    coarse: np.ndarray,
-    objects: np.ndarray,
-    edges: np.ndarray,
-    *,
-    close_size: int = 9,
-    min_area: int = 16,
-    dilate: int = 0,
-) -> np.ndarray:
-    """Fine dynamic mask: union of the cues, closed, holes filled, small components dropped."""
-    m = np.asarray(coarse, bool) | np.asarray(objects, bool) | np.asarray(edges, bool)
-    if not m.any():
-        return m
-    # work on the mask's bounding box with a margin the closing and the dilation cannot
-    # cross (and one pixel of background around it, so hole filling sees the same outside)
-    ys, xs = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
-    pad = max(0, int(close_size)) + max(0, int(dilate)) + 2
-    h, w = m.shape
-    y0, y1 = max(0, ys[0] - pad), min(h, ys[-1] + pad + 1)
-    x0, x1 = max(0, xs[0] - pad), min(w, xs[-1] + pad + 1)
-    out = np.zeros((h, w), bool)
-    out[y0:y1, x0:x1] = _fine_mask_crop(m[y0:y1, x0:x1], close_size, min_area, dilate)
-    return out
-
-
-def _fine_mask_crop(m: np.ndarray, close_size: int, min_area: int, dilate: int) -> np.ndarray:
-    from scipy import ndimage as ndi
-
-    if close_size > 1:
-        import cv2
-
-        k = np.ones((int(close_size), int(close_size)), np.uint8)
-        m = cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_CLOSE, k) > 0
-    m = ndi.binary_fill_holes(m)
-    if min_area > 1:
-        lab, n = ndi.label(m)
-        if n:
-            sizes = np.bincount(lab.ravel())
-            keep = sizes >= int(min_area)
-            keep[0] = False
-            m = keep[lab]
-    if dilate > 0 and m.any():
-        import cv2
-
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(dilate) + 1,) * 2)
-        m = cv2.dilate(m.astype(np.uint8), k) > 0
-    return m
 
 
 _SCRATCH = threading.local()
@@ -491,6 +439,9 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     # the words cover both passes (the second reads TFI intervals up to max_isi around ends)
     lo = max(0, min(u_lo, int(ta.min()), pa, d_lo, int(ends[0]) - m))
     hi = min(n, max(u_hi, int(tb.max()), pb, d_hi, int(ends[-1]) + m + 1))
+    if uses_steady(p):  # the steady rules read the same words (fine_stage)
+        s_lo, s_hi = steady_range(n, center, m)
+        lo, hi = min(lo, s_lo), max(hi, s_hi)
     k = ends.size
     # the K history TFP windows and the one at t, as indices into their sorted distinct edges
     wins = np.concatenate([np.stack([ta, tb], 1), [[pa, pb]]]).astype(np.int64)
@@ -499,7 +450,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     # which windows take the isi rule: the history frames' (MOG's input) and the one at t
     isi_win = np.zeros(k + 1, np.bool_)
     isi_win[:k] = p.get("mog_estimator", "tfp") == "isi"
-    isi_win[k] = p.get("static_estimator", "tfp") == "isi"
+    isi_win[k] = span_estimator(p) == "isi"
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
@@ -534,6 +485,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
         return {
+            "words": (store, bases, lo, hi),
             "rates": tfps[:k],  # static rates, in [0, 1] already
             "coarse": np.zeros((h, w), bool),
             "tfi": lambda: _tfi_at(src, center, m),
@@ -549,7 +501,14 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     # TFI where a frame has dynamic pixels, its clipped TFP elsewhere (as csr_frames)
     rates = atsr_fuse_isi(isi, tfps[:k], masks)
     tfi = (1.0 / isi[-1]).astype(np.float32)
-    return {"rates": rates, "coarse": masks[-1], "tfi": lambda: tfi, "tfp": tfp, "daisi": daisi}
+    return {
+        "words": (store, bases, lo, hi),
+        "rates": rates,
+        "coarse": masks[-1],
+        "tfi": lambda: tfi,
+        "tfp": tfp,
+        "daisi": daisi,
+    }
 
 
 def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
@@ -596,7 +555,8 @@ def fine_stage(
     pa, pb = tfp_span(center, n, static_length(p), p["tfp_mode"])
     gate = static_gate(src, pb, p["static_window"], p["static_tol"]) if adaptive else None
     if gate is not None:
-        if p.get("static_estimator", "tfp") == "isi":  # below two spikes: the TFI at t
+        # a window the gate passes has no mover for the steady check to catch: isi as is
+        if span_estimator(p) == "isi":  # below two spikes: the TFI at t
             tfp = span_isi_rate(src, pa, pb, center=center, max_isi=int(p["max_isi"]))
         else:
             counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
@@ -606,6 +566,16 @@ def fine_stage(
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
     hs = _history(src, center, p)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
+    tfi_at_t = hs["tfi"]
+    if uses_steady(p):  # the intervals around t: steady coarse mask and static check
+        # from the history scan's words, before anything else reuses its scratch store
+        st = steady_parts(src, center, p, words=hs["words"], static=False)
+        coarse = coarse if st.mask is None else st.mask
+        tfp = static_checked(tfp, st.isi, st.noise, p)
+        tfi_t = (1.0 / st.isi).astype(np.float32)  # the same numbers as _tfi_at
+
+        def tfi_at_t():
+            return tfi_t
     # 2. MOG background and moving objects (Eq. 8-9)
     gain = p["mog_gain"]
     if gain <= 0:
@@ -668,7 +638,7 @@ def fine_stage(
     )
     if not fine.any():  # always-full pipeline on a static window: the same TFP output
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
-    tfi_full = hs["tfi"]()  # TFI at t (computed here when the history did not need it)
+    tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     crop = dyn[y0:y1, x0:x1]
     crop[domain] = refined[domain]

@@ -17,16 +17,22 @@ A window with no dynamic pixel needs only TFP: the TFI stage is skipped and the 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from cfsr._words import PackedWindow
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.distinction import coarse_masks, distinct_isi_counts_packed
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
+from cfsr.methods.steady import DISTINCTIONS, check_static, noise_level, steadiness, steady_mask
 from cfsr.methods.tfi import tfi_rate_packed, tfi_rates
-from cfsr.methods.tfp import STATIC_ESTIMATORS, static_rate, static_rate_packed
+from cfsr.methods.tfp import static_rate, static_rate_packed, tfp_rate, tfp_rate_packed, tfp_span
+
+#: Static-region estimators of CSR and CFSR at t (:func:`static_checked`).
+STATIC_CHOICES = ("steady", "isi", "tfp")
 
 __all__ = ["csr_frames", "csr_frame_packed", "CSR_PARAMS", "csr_window", "static_length"]
 
@@ -66,14 +72,60 @@ CSR_PARAMS: dict[str, Param] = {
         minimum=1,
         maximum=MAX_WINDOW_STEPS // 2,
     ),
-    # isi by default: on the simulator and REDS it is at least as good as TFP on every scene,
-    # whole frame and motion region (docs/methods.md); the paper's TFP stays in the presets
+    # steady by default: the isi rule where t's own interval agrees with it, the TFI where it
+    # does not (a mover the masks miss is not smeared); isi and the paper's tfp are choices
     "static_estimator": Param(
-        "isi",
+        "steady",
         "",
-        "static-region rate: tfp (Eq. 4, window count / w) or isi ((spikes - 1) / first-to-last "
-        "spike steps over static_span; the TFI below two spikes)",
-        choices=STATIC_ESTIMATORS,
+        "static-region rate: tfp (Eq. 4, window count / w), isi ((spikes - 1) / first-to-last "
+        "spike steps over static_span; the TFI below two spikes) or steady (isi where the "
+        "interval at t agrees with it within steady_match, the TFI elsewhere)",
+        choices=STATIC_CHOICES,
+    ),
+    "steady_match": Param(
+        0.05,
+        "",
+        "steady: relative tolerance of |ISI(t) - 1/rate| (plus one step; at least "
+        "steady_noise times the frame's noise level)",
+        minimum=0.0,
+        maximum=100.0,
+    ),
+    "distinction": Param(
+        "steady",
+        "",
+        "coarse distinction: steady (interval spread around t, regularised) or isi_set "
+        "(distinct ISIs in T >= theta, Eq. 5-6)",
+        choices=DISTINCTIONS,
+    ),
+    "steady_radius": Param(
+        24,
+        "steps",
+        "steady: intervals containing a step within this many steps of t are compared",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 4,
+    ),
+    "steady_tol": Param(
+        0.2,
+        "",
+        "steady: relative interval spread (max - min - 1) / mean above which a pixel is "
+        "dynamic",
+        minimum=0.0,
+        maximum=100.0,
+    ),
+    "steady_noise": Param(
+        3.5,
+        "",
+        "steady: the spread tolerance is at least this many times the frame's median spread "
+        "(its temporal-noise level)",
+        minimum=0.0,
+        maximum=100.0,
+    ),
+    "coarse_close": Param(
+        15,
+        "pixels",
+        "steady: closing square of the coarse mask (holes filled; <= 1: none)",
+        minimum=0,
+        maximum=255,
     ),
     # 0 keeps the TFP window; a longer span sees more intervals (more precise for dark static
     # pixels, more smear on a mover the distinction misses)
@@ -94,6 +146,7 @@ CSR_PRESETS: dict[str, dict[str, Any]] = {
         "tfp_mode": "trailing",
         "static_estimator": "tfp",
         "static_span": 0,
+        "distinction": "isi_set",
     },
     "simulated": {
         "T": 300,
@@ -102,14 +155,39 @@ CSR_PRESETS: dict[str, dict[str, Any]] = {
         "tfp_mode": "trailing",
         "static_estimator": "tfp",
         "static_span": 0,
+        "distinction": "isi_set",
     },
 }
 
-#: ``csr`` alone has no fine stage to catch the moving pixels the coarse test misses (bright
-#: moving texture has too few distinct ISIs), so its static TFP defaults to a shorter, centred
-#: window that smears a missed mover less (docs/methods.md, calibration).
+#: ``csr`` alone has no fine stage: its dynamic region is the whole answer there. The paper
+#: gives it the TFI (Eq. 7), whose one interval is the noisiest estimate of a moving pixel; by
+#: default it gets the steady-checked span rule over a short centred span (``dynamic_span``),
+#: so the two regions differ in span length only (docs/methods.md, CSR). The paper's TFP
+#: window, if chosen, stays short and centred (it smears a missed mover less); the steady
+#: static span is long (static_span = 160, centred), its check catching missed movers.
 CSR_ONLY_PARAMS: dict[str, Param] = {
     **CSR_PARAMS,
+    "static_span": Param(
+        160,
+        "steps",
+        "isi/steady: span of the static estimate, placed as tfp_mode (0: tfp_window)",
+        minimum=0,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "dynamic_estimator": Param(
+        "steady",
+        "",
+        "dynamic-region rate: tfi (Eq. 7, the interval at t) or steady (the steady static "
+        "rule over dynamic_span centred steps)",
+        choices=("steady", "tfi"),
+    ),
+    "dynamic_span": Param(
+        16,
+        "steps",
+        "steady: centred span of the dynamic region's estimate",
+        minimum=2,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
     "tfp_window": Param(
         32,
         "steps",
@@ -126,7 +204,7 @@ CSR_ONLY_PARAMS: dict[str, Param] = {
 def static_length(p: Mapping[str, Any]) -> int:
     """Steps of the static estimate's span: ``static_span`` for ``isi`` when set, else
     ``tfp_window`` (parameter sets without the keys read as the paper's TFP)."""
-    if p.get("static_estimator", "tfp") == "isi" and int(p.get("static_span", 0)) > 0:
+    if p.get("static_estimator", "tfp") in ("isi", "steady") and int(p.get("static_span", 0)) > 0:
         return int(p["static_span"])
     return int(p["tfp_window"])
 
@@ -138,7 +216,25 @@ def csr_window(p: Mapping[str, Any]) -> tuple[int, int]:
         tb, ta = w - 1, 0
     else:
         tb, ta = w // 2, w - w // 2 - 1
-    return max(p["T"] - 1, tb, p["max_isi"]), max(ta, p["max_isi"])
+    reach = p["max_isi"]  # TFI at t; the steady rules read inside the same range
+    if p.get("dynamic_estimator", "tfi") == "steady":
+        reach = max(reach, p["dynamic_span"] // 2 + 1)
+    return max(p["T"] - 1, tb, reach), max(ta, reach)
+
+
+def uses_steady(p: Mapping[str, Any]) -> bool:
+    """Whether a parameter set reads the intervals around t (:mod:`cfsr.methods.steady`)."""
+    return (
+        p.get("distinction", "isi_set") == "steady"
+        or p.get("static_estimator") == "steady"
+        or p.get("dynamic_estimator", "tfi") == "steady"
+    )
+
+
+def span_estimator(p: Mapping[str, Any]) -> str:
+    """The span rule under ``static_estimator`` (``steady`` is ``isi`` plus a check)."""
+    est = p.get("static_estimator", "tfp")
+    return "isi" if est == "steady" else est
 
 
 def csr_frames(
@@ -166,6 +262,8 @@ def csr_frames(
         ATSR scale.
     """
     cs = [int(c) for c in centers]
+    if uses_steady(p):
+        return _steady_frames(spikes, cs, p)
     masks = coarse_masks(spikes, cs, p["T"], p["theta"])
     rates = np.empty(masks.shape, np.float32)
     tfps = np.empty(masks.shape, np.float32)
@@ -179,7 +277,7 @@ def csr_frames(
             c,
             window=static_length(p),
             mode=p["tfp_mode"],
-            estimator=p.get("static_estimator", "tfp"),
+            estimator=span_estimator(p),
             max_isi=p["max_isi"],
             tfi=tfi_of.get(k),
         )
@@ -189,6 +287,121 @@ def csr_frames(
         else:
             rates[k] = np.clip(tfp, 0.0, 1.0)
     return rates, masks, tfps
+
+
+def _steady_frames(
+    spikes: np.ndarray, cs: Sequence[int], p: Mapping[str, Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`csr_frames` when a steady rule is on (:func:`csr_steady`)."""
+    src = PackedWindow.from_frames(spikes)
+    h, w = spikes.shape[1:]
+    rates = np.empty((len(cs), h, w), np.float32)
+    masks = np.empty((len(cs), h, w), bool)
+    tfps = np.empty((len(cs), h, w), np.float32)
+    for k, c in enumerate(cs):
+        rates[k], masks[k], tfps[k] = csr_steady(
+            src,
+            c,
+            p,
+            coarse=lambda c=c: coarse_masks(spikes, [c], p["T"], p["theta"])[0],
+            tfp=lambda c=c: tfp_rate(spikes, c, window=static_length(p), mode=p["tfp_mode"]),
+        )
+    return rates, masks, tfps
+
+
+@dataclass(frozen=True)
+class Steady:
+    """What the steady rules read around t (:func:`steady_parts`)."""
+
+    mask: np.ndarray | None  #: steady coarse mask, None under ``distinction = isi_set``
+    isi: np.ndarray  #: TFI interval at t, steps, int32 (H, W)
+    noise: float  #: the frame's noise level (median interval spread)
+    static: np.ndarray | None  #: span rule over the static span (``isi``/``steady`` only)
+    dynamic: np.ndarray | None  #: span rule over ``dynamic_span`` (``dynamic_estimator = steady``)
+
+
+def steady_parts(
+    src: PackedWindow, center: int, p: Mapping[str, Any], *, words=None, static: bool = True
+) -> Steady:
+    """One read of every pixel's words around t (:func:`cfsr.methods.steady.steadiness`):
+    the steady coarse mask, the TFI interval at t, the noise level and the span rules the
+    parameters ask for (``static=False``: the caller has the static span rule already)."""
+    n = src.n
+    spans = []
+    want_static = static and span_estimator(p) == "isi"
+    want_dyn = p.get("dynamic_estimator", "tfi") == "steady"
+    if want_static:
+        spans.append(tfp_span(center, n, static_length(p), p["tfp_mode"]))
+    if want_dyn:
+        spans.append(tfp_span(center, n, int(p["dynamic_span"]), "centred"))
+    spread, isi, rates = steadiness(
+        src,
+        center,
+        radius=p["steady_radius"],
+        max_isi=p["max_isi"],
+        spans=tuple(spans),
+        words=words,
+    )
+    noise = noise_level(spread)
+    mask = None
+    if p.get("distinction", "isi_set") == "steady":
+        mask = steady_mask(
+            spread,
+            tol=p["steady_tol"],
+            noise=noise,
+            noise_factor=p["steady_noise"],
+            close_size=p["coarse_close"],
+        )
+    return Steady(
+        mask,
+        isi,
+        noise,
+        rates[0] if want_static else None,
+        rates[-1] if want_dyn else None,
+    )
+
+
+def static_checked(
+    tfp: np.ndarray, isi: np.ndarray, noise: float, p: Mapping[str, Any]
+) -> np.ndarray:
+    """The static estimate under ``static_estimator``: ``steady`` keeps it only where the
+    interval at t agrees (:func:`cfsr.methods.steady.check_static`, tolerance raised to the
+    noise level); ``isi`` and ``tfp`` as they are."""
+    if p.get("static_estimator") != "steady":
+        return tfp
+    return check_static(tfp, isi, match=steady_match(p, noise))
+
+
+def steady_match(p: Mapping[str, Any], noise: float) -> float:
+    """The check's relative tolerance: ``steady_match``, raised to ``steady_noise`` times the
+    frame's noise level (as the coarse mask's tolerance: a noisy steady pixel's interval at t
+    strays from its mean by the same relative amount as its intervals spread)."""
+    return max(float(p["steady_match"]), float(p["steady_noise"]) * noise)
+
+
+def csr_steady(
+    src: PackedWindow,
+    center: int,
+    p: Mapping[str, Any],
+    *,
+    coarse: Callable[[], np.ndarray],
+    tfp: Callable[[], np.ndarray],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One CSR frame when a steady rule is on: Eq. 7 with the checked static estimate and,
+    on the dynamic region, the TFI or (``dynamic_estimator = steady``) the checked span rule
+    over ``dynamic_span`` centred steps. ``coarse()`` gives the Eq. 5-6 mask (used under
+    ``distinction = isi_set``), ``tfp()`` the window count (``static_estimator = tfp``).
+    Returns the rate, the coarse mask and the static estimate."""
+    st = steady_parts(src, center, p)
+    mask = coarse() if st.mask is None else st.mask
+    tfi = (1.0 / st.isi).astype(np.float32)
+    static = static_checked(tfp() if st.static is None else st.static, st.isi, st.noise, p)
+    if not mask.any():
+        return np.clip(static, 0.0, 1.0), mask, static
+    dyn = tfi
+    if st.dynamic is not None:
+        dyn = check_static(st.dynamic, st.isi, match=steady_match(p, st.noise))
+    return atsr_fuse(dyn, static, mask, tfi=tfi)[0], mask, static
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
@@ -201,6 +414,18 @@ def csr_frame_packed(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One CSR frame and its coarse mask from packed frames: the same numbers as
     :func:`csr_frames`, without unpacking the window (the live path's budget)."""
+    if uses_steady(p):
+        rate, mask, _ = csr_steady(
+            PackedWindow.from_packed(packed, layout),
+            center,
+            p,
+            coarse=lambda: distinct_isi_counts_packed(packed, layout, center, p["T"])
+            >= int(p["theta"]),
+            tfp=lambda: tfp_rate_packed(
+                packed, layout, center, window=static_length(p), mode=p["tfp_mode"]
+            ),
+        )
+        return rate, mask
     mask = distinct_isi_counts_packed(packed, layout, center, p["T"]) >= int(p["theta"])
     tfi = tfi_rate_packed(packed, layout, center, max_isi=p["max_isi"]) if mask.any() else None
     tfp = static_rate_packed(
@@ -209,7 +434,7 @@ def csr_frame_packed(
         center,
         window=static_length(p),
         mode=p["tfp_mode"],
-        estimator=p.get("static_estimator", "tfp"),
+        estimator=span_estimator(p),
         max_isi=p["max_isi"],
         tfi=tfi,
     )
@@ -232,7 +457,7 @@ register(
         compute=_compute,
         compute_packed=_compute_packed,
         masks=("coarse",),
-        presets=CSR_PRESETS,
+        presets={k: {**v, "dynamic_estimator": "tfi"} for k, v in CSR_PRESETS.items()},
         reference="CFSR paper Eq. 3-7 (coarse stage)",
     )
 )

@@ -1,0 +1,280 @@
+"""The steady-interval distinction: is a pixel's rate steady around t?
+
+A pixel of constant brightness is an integrate-and-fire pixel at a constant rate r: it fires
+where its integral crosses a whole number, so every inter-spike interval is ``floor(1/r)`` or
+``ceil(1/r)`` steps -- whatever r is. Light that changes under the pixel (a mover's texture or
+edge) changes its intervals. Two tests follow, both per pixel and both from the intervals
+around t (all read as spike words, :mod:`cfsr._words`):
+
+* **coarse mask** (``distinction = steady``): the intervals that contain a step of
+  ``[t - radius, t + radius]`` (the TFI values of those steps, Eq. 3) spread by
+  ``(max - min - 1) / mean``; the pixel is dynamic where the spread exceeds the tolerance.
+  A steady pixel's spread is at most 0 (its intervals differ by at most one step) at any
+  brightness, so bright static pixels stay static (the paper's distinct-ISI set, Eq. 5-6, has
+  the same aim) and dark ones cannot collect spurious values (the distinct-ISI count, over 300
+  steps, counts every interval length a noisy dark pixel shows; see docs/methods.md). The
+  per-pixel test sees only *change*: the flat interior of a mover is steady, so the mask is
+  regularised (closing, hole filling: :func:`cfsr.methods.masks.regularise`).
+* **static check** (``static_estimator = steady``): the static estimate over a long span
+  (:func:`cfsr.methods.tfp.span_rate`, ~exact for a steady pixel) is kept only where t's own
+  interval agrees with it, ``|ISI(t) - 1/rate| <= 1 + match / rate``; elsewhere the pixel's
+  light changed within the span and its TFI at t (Eq. 3) is used. A mover the masks miss is
+  then reconstructed like TFI instead of smeared over the span.
+
+**Noise.** Temporal (shot) noise makes a steady pixel's intervals vary by a relative amount
+that does not depend on its rate (a Poisson charge N per threshold gives intervals with
+relative spread ~ 1/sqrt(N)). Both tolerances are therefore raised to the frame's noise
+level: the median spread of the frame's pixels (most pixels of a camera frame are static;
+when more than half move the level is overestimated and the masks err on the static side).
+Without temporal noise the median spread is 0 and the fixed tolerances apply.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from cfsr._words import (
+    PackedWindow,
+    count_between,
+    isi_in_words,
+    next_spike,
+    prev_spike,
+    range_times,
+    row_words,
+)
+from cfsr.methods.tfp import span_rate
+
+__all__ = [
+    "steadiness",
+    "steady_range",
+    "noise_level",
+    "steady_mask",
+    "check_static",
+    "DISTINCTIONS",
+    "ROW_PAD",
+]
+
+#: Coarse distinctions: ``steady`` (this module) or ``isi_set`` (Eq. 5-6, the paper's).
+DISTINCTIONS = ("steady", "isi_set")
+
+#: Extra word rows per image row that :func:`cfsr._words.row_words` may write (a stored
+#: row's head columns and the 64-bit alignment of its last bytes).
+ROW_PAD = 80
+
+
+@njit(cache=True, inline="always")
+def interval_spread(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - numba
+    """``(max - min - 1) / mean`` of the intervals containing a step of
+    ``[c - radius, c + radius]`` (clipped to ``[a, b)``), spikes searched in ``[a, b)``.
+
+    The intervals are the TFI values of those steps (:func:`cfsr._words.isi_in_words`, open
+    ends by its rule), each counted once: the one containing the first step, then one per
+    spike inside, ending at the next spike. <= 0 for a steady pixel (lengths differ by at
+    most one step). ``loc``: scratch of at least ``2 * radius + 1`` steps.
+    """
+    t0 = max(a, c - radius)
+    t1 = min(b - 1, c + radius)
+    v = isi_in_words(words, r, lo, t0, a, b)
+    vmin = v
+    vmax = v
+    tot = v
+    ns = range_times(words, r, lo, t0 + 1, t1 + 1, loc)  # each later interval starts here
+    for i in range(ns - 1):
+        d = loc[i + 1] - loc[i]
+        vmin = min(vmin, d)
+        vmax = max(vmax, d)
+        tot += d
+    if ns > 0:
+        s = loc[ns - 1]
+        nx = next_spike(words, r, lo, s + 1, b)
+        d = nx - s if nx >= 0 else isi_in_words(words, r, lo, s, a, b)
+        vmin = min(vmin, d)
+        vmax = max(vmax, d)
+        tot += d
+    return (vmax - vmin - 1) / (tot / (ns + 1))
+
+
+@njit(parallel=True, cache=True)
+def _steady_kernel(
+    packed, geo, lo, hi, n, c, radius, m, spans, spread, isi, rates, store, bases
+):  # pragma: no cover - numba
+    # the spread searches the TFI's range whatever range the words cover, so its open-ended
+    # intervals do not depend on who gathered the words
+    """Per pixel from its words of ``[lo, hi)``: :func:`interval_spread` around ``c``, the TFI
+    interval at ``c`` (``m`` steps each side) and, for each span ``[spans[j, 0], spans[j, 1])``,
+    the ``isi`` span rate (:func:`cfsr.methods.tfp.span_rate`; the TFI at ``c`` below two
+    spikes: :func:`cfsr.methods.tfp.static_rate`'s rule). Reads ``store[y]`` (pixel ``x`` at
+    ``bases[y, 0] + bases[y, 1] * x``, steps from ``lo``) when it holds one row per image row,
+    as CFSR's history scan leaves it; otherwise gathers the words."""
+    h, w = spread.shape
+    nw = (hi - lo + 63) >> 6
+    a = max(0, c - m)
+    b = min(n, c + m + 1)
+    k_spans = spans.shape[0]
+    stored = store.shape[0] == h
+    for y in prange(h):
+        loc = np.empty(2 * radius + 2, np.int64)
+        if stored:
+            words = store[y]
+            base = bases[y, 0]
+            step = bases[y, 1]
+        else:
+            words = np.empty((w + ROW_PAD, nw), np.uint64)
+            base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        for x in range(w):
+            r = base + step * x
+            iv = isi_in_words(words, r, lo, c, a, b)
+            isi[y, x] = iv
+            spread[y, x] = np.float32(interval_spread(words, r, lo, c, radius, a, b, loc))
+            for j in range(k_spans):
+                sa = spans[j, 0]
+                sb = spans[j, 1]
+                cnt = count_between(words, r, lo, sa, sb)
+                if cnt >= 2:
+                    first = next_spike(words, r, lo, sa, sb)
+                    last = prev_spike(words, r, lo, sb - 1, sa)
+                    rates[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
+                else:
+                    rates[j, y, x] = np.float32(1.0 / iv)
+
+
+#: Stored words of a whole window (CFSR's history scan): ``(store, bases, lo, hi)``.
+StoredWords = tuple
+
+
+def steady_range(n: int, center: int, max_isi: int) -> tuple[int, int]:
+    """Steps ``[lo, hi)`` whose words :func:`steadiness` reads: the TFI's search range at t
+    (the compared intervals must lie in it too; ``radius`` is clipped to it)."""
+    return max(0, center - max_isi), min(n, center + max_isi + 1)
+
+
+def steadiness(
+    src: PackedWindow,
+    center: int,
+    *,
+    radius: int,
+    max_isi: int,
+    spans: tuple[tuple[int, int], ...] = (),
+    words: StoredWords | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel, the interval spread around ``center``, the TFI interval at it, and the
+    ``isi`` span rates of ``spans``, from one read of each pixel's spike words.
+
+    Parameters
+    ----------
+    src : PackedWindow
+        The window (packed frames or :meth:`PackedWindow.from_frames`).
+    center : int
+        Index of t in the window.
+    radius : int
+        Steps each side of t whose intervals are compared (clipped to ``max_isi``).
+    max_isi : int
+        Steps searched each side of t for spikes (Eq. 3's range), for the TFI at t and the
+        compared intervals alike.
+    spans : tuple of (a, b)
+        Steps ``[a, b)`` of span rules to compute with the same words (the static region's
+        span, CSR's dynamic span); each must lie within :func:`steady_range` or the words.
+    words : (store, bases, lo, hi), optional
+        Words already gathered for the whole frame (CFSR's history scan), covering
+        :func:`steady_range`; None gathers them here.
+
+    Returns
+    -------
+    spread : ndarray (H, W) float32
+        :func:`interval_spread` (relative, unitless; <= 0 for a steady pixel).
+    isi : ndarray (H, W) int32
+        The TFI interval at ``center`` in steps (``1 / isi`` is :func:`tfi_rate`'s value).
+    rates : ndarray (len(spans), H, W) float32
+        Span rates in spikes per step (:func:`cfsr.methods.tfp.static_rate`, ``isi``).
+    """
+    n = src.n
+    c, radius, m = int(center), int(radius), int(max_isi)
+    if words is None:
+        lo, hi = steady_range(n, c, m)
+        for a, b in spans:
+            lo, hi = min(lo, int(a)), max(hi, int(b))
+        store = np.empty((0, 0, 0), np.uint64)
+        bases = np.empty((0, 2), np.int64)
+    else:
+        store, bases, lo, hi = words
+        want = steady_range(n, c, m)
+        if lo > want[0] or hi < want[1] or any(a < lo or b > hi for a, b in spans):
+            raise ValueError(f"stored words [{lo}, {hi}) do not cover what steadiness reads")
+    sp = np.asarray(spans, np.int64).reshape(-1, 2)
+    spread = np.empty((src.h, src.w), np.float32)
+    isi = np.empty((src.h, src.w), np.int32)
+    rates = np.empty((sp.shape[0], src.h, src.w), np.float32)
+    _steady_kernel(
+        src.packed, src.geo, int(lo), int(hi), n, c, radius, m, sp, spread, isi, rates,
+        store, bases,
+    )
+    return spread, isi, rates
+
+
+def noise_level(spread: np.ndarray, *, clip: float = 3.0, rounds: int = 3) -> float:
+    """The frame's temporal-noise level: the median interval spread (0 without noise).
+
+    Clipped: the median is taken again over the pixels within ``clip`` times the last
+    estimate (``rounds`` times), so strong movers do not raise it; where most of the frame
+    moves it still errs high (the masks then err static).
+    """
+    s = np.asarray(spread, np.float32)
+    if s.ndim == 2 and s.size > 4 * 4096:  # every other row and column: the median of a
+        s = s[::2, ::2]  # quarter of a camera frame is as good, at a quarter of the cost
+    s = s.ravel()
+    s = s[np.isfinite(s)]
+    v = float(np.median(s)) if s.size else 0.0
+    for _ in range(rounds):
+        if v <= 0:
+            return 0.0
+        v = float(np.median(s[s <= clip * v]))
+    return max(0.0, v)
+
+
+def steady_mask(
+    spread: np.ndarray,
+    *,
+    tol: float,
+    noise: float,
+    noise_factor: float,
+    close_size: int,
+    min_area: int = 16,
+) -> np.ndarray:
+    """Coarse dynamic mask: ``spread > max(tol, noise_factor * noise)``, regularised.
+
+    ``tol`` and ``noise`` are relative interval spreads (see :func:`interval_spread`,
+    :func:`noise_level`); ``close_size`` pixels (<= 1: the per-pixel test alone).
+    """
+    from cfsr.methods.masks import regularise
+
+    raw = spread > np.float32(max(tol, noise_factor * noise))
+    return regularise(raw, close_size=close_size, min_area=min_area)
+
+
+@njit(parallel=True, cache=True)
+def _check_kernel(static, isi, match, out):  # pragma: no cover - numba
+    h, w = static.shape
+    for y in prange(h):
+        for x in range(w):
+            r = static[y, x]
+            v = isi[y, x]
+            if r > 0 and abs(v - 1.0 / r) <= 1.0 + match / r:
+                out[y, x] = r
+            else:
+                out[y, x] = np.float32(1.0 / v)
+    return out
+
+
+def check_static(static: np.ndarray, isi: np.ndarray, *, match: float) -> np.ndarray:
+    """The static estimate where t's interval agrees with it, the TFI at t elsewhere.
+
+    ``static``: spikes per step; ``isi``: the TFI interval at t in steps (>= 1); kept where
+    ``|isi - 1/static| <= 1 + match / static`` (relative tolerance ``match``). Returns
+    float32 spikes per step in (0, 1].
+    """
+    static = np.ascontiguousarray(static, np.float32)
+    isi = np.ascontiguousarray(isi, np.int32)
+    if static.shape != isi.shape:
+        raise ValueError(f"static {static.shape} and isi {isi.shape} differ")
+    return _check_kernel(static, isi, float(match), np.empty_like(static))
