@@ -23,6 +23,8 @@ __all__ = [
     "pareto_front",
     "plot_pareto",
     "method_fps",
+    "method_scaling",
+    "amdahl",
     "streaming_state_rtf",
     "format_rows",
     "time_call",
@@ -169,6 +171,53 @@ def method_fps(
     sec = time_call(lambda: sr.compute(t), min_time=min_time)
     fps = 1.0 / sec
     return {"ms_per_frame": sec * 1e3, "fps": fps, "display_rtf": fps / DISPLAY_FPS}
+
+
+def amdahl(t1: float, tn: float, n: int) -> float:
+    """Parallel fraction p of a run that takes ``t1`` on one thread and ``tn`` on ``n``
+    (Amdahl's law, ``tn / t1 = (1 - p) + p / n``), clipped to [0, 1]."""
+    if n <= 1 or t1 <= 0:
+        return float("nan")
+    p = (1.0 - tn / t1) / (1.0 - 1.0 / n)
+    return float(min(1.0, max(0.0, p)))
+
+
+def method_scaling(
+    packed: np.ndarray,
+    layout,
+    method: str,
+    *,
+    threads: Sequence[int] = (1, 2),
+    min_time: float = 0.5,
+) -> dict[str, Any]:
+    """Milliseconds per frame of ``method`` at each thread count, and its parallel fraction.
+
+    Threads are numba's and OpenCV's (the two pools the methods use), set for the measurement
+    and restored after; counts above numba's pool size are skipped. Returns ``{"ms_per_frame":
+    {threads: ms}, "parallel_fraction": p}`` with p from the lowest and highest count
+    measured (:func:`amdahl`), and the speed-up it predicts at 8 and 16 threads.
+    """
+    import cv2
+    import numba
+
+    top = numba.config.NUMBA_NUM_THREADS
+    use = sorted({int(t) for t in threads if 1 <= int(t) <= top})
+    old_nb, old_cv = numba.get_num_threads(), cv2.getNumThreads()
+    ms: dict[int, float] = {}
+    try:
+        for t in use:
+            numba.set_num_threads(t)
+            cv2.setNumThreads(t)
+            ms[t] = method_fps(packed, layout, method, min_time=min_time)["ms_per_frame"]
+    finally:
+        numba.set_num_threads(old_nb)
+        cv2.setNumThreads(old_cv)
+    out: dict[str, Any] = {"ms_per_frame": ms}
+    if len(use) >= 2 and use[0] == 1:
+        p = amdahl(ms[1], ms[use[-1]], use[-1])
+        out["parallel_fraction"] = p
+        out["predicted_speedup"] = {n: 1.0 / ((1.0 - p) + p / n) for n in (8, 16)}
+    return out
 
 
 def streaming_state_rtf(

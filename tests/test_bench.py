@@ -52,6 +52,20 @@ def test_bench_quick_throughput_json(tmp_path):
     assert res["acquisition"]["lost_frames"] == 0
     for m in ("tfp", "csr", "cfsr"):
         assert res["fps"][m] > 0
+        sc = res["scaling"][m]  # cost at 1 and 2 threads (or 1 where numba has one thread)
+        assert sc["ms_per_frame"]["1"] > 0
+        if "2" in sc["ms_per_frame"]:
+            assert 0.0 <= sc["parallel_fraction"] <= 1.0
+            assert 1.0 <= sc["predicted_speedup"]["8"] <= 8.0
+
+
+def test_amdahl_parallel_fraction():
+    from cfsr.bench import amdahl
+
+    assert amdahl(10.0, 5.0, 2) == pytest.approx(1.0)  # perfectly parallel
+    assert amdahl(10.0, 10.0, 2) == 0.0  # serial
+    assert amdahl(10.0, 7.5, 2) == pytest.approx(0.5)
+    assert amdahl(10.0, 12.0, 2) == 0.0  # slower with more threads: clipped, not negative
 
 
 @pytest.mark.slow

@@ -280,14 +280,18 @@ def _acquisition(args: argparse.Namespace) -> dict[str, Any]:
     return acquisition_throughput(seconds=2.0 if args.quick else 5.0)
 
 
+#: Methods whose cost is measured at 1 and 2 threads (issue 14: scaling stated, not guessed).
+SCALING_METHODS = ("tfp", "csr", "cfsr")
+
+
 def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
-    from cfsr.bench import method_fps, streaming_state_rtf
+    from cfsr.bench import method_fps, method_scaling, streaming_state_rtf
     from cfsr.methods import methods
 
     steps = 2048 if args.quick else 4096
     bar.set_description("simulating")
     packed, layout = _demo_packed(steps)
-    bar.reset(total=2 + len(methods()))
+    bar.reset(total=2 + len(methods()) + len(SCALING_METHODS))
     bar.set_description("streaming state")
     rtf = {"streaming_state": streaming_state_rtf(packed, layout)}
     bar.update()
@@ -307,9 +311,16 @@ def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
             fps[name] = r["fps"]
             detail[name] = r
         bar.update()
+    scaling: dict[str, Any] = {}
+    for name in SCALING_METHODS:
+        bar.set_description(f"threads {name}")
+        scaling[name] = method_scaling(
+            packed, layout, name, threads=(1, 2), min_time=0.3 if args.quick else 1.0
+        )
     return {
         "realtime_factor": rtf,
         "fps": fps,
+        "scaling": scaling,
         "acquisition": acq,
         "methods": detail,
         "goals": GOALS,
@@ -335,6 +346,18 @@ def _print_throughput(res: dict[str, Any]) -> None:
         print(f"    {acq['error']}")
     for k, v in fps.items():
         print(f"  {k + ' (fps, 400 x 250)':28s} {v:12.1f}   {GOALS.get(k, '')}")
+    scaling = res.get("scaling", {})
+    if scaling:
+        print("  ms per frame by threads (numba + OpenCV), parallel fraction p (Amdahl),")
+        print("  and the speed-up over 1 thread that p predicts at 8 / 16 threads:")
+        for k, sc in scaling.items():
+            ms = "  ".join(f"{t} thr {v:7.2f}" for t, v in sc["ms_per_frame"].items())
+            p = sc.get("parallel_fraction")
+            pred = sc.get("predicted_speedup", {})
+            extra = (
+                f"  p = {p:.2f}, {pred[8]:.1f}x / {pred[16]:.1f}x" if p is not None else ""
+            )
+            print(f"    {k:6s} {ms}{extra}")
 
 
 # --------------------------------------------------------------------------- CLI
