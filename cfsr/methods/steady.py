@@ -37,7 +37,6 @@ from numba import njit, prange
 from cfsr._words import (
     PackedWindow,
     count_between,
-    isi_in_words,
     next_spike,
     prev_spike,
     range_times,
@@ -64,35 +63,69 @@ ROW_PAD = 80
 
 
 @njit(cache=True, inline="always")
-def interval_spread(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - numba
-    """``(max - min - 1) / mean`` of the intervals containing a step of
-    ``[c - radius, c + radius]`` (clipped to ``[a, b)``), spikes searched in ``[a, b)``.
+def interval_stats(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - numba
+    """``(spread, isi)`` of word row ``r``, spikes searched in ``[a, b)``: ``isi`` is the TFI
+    interval at ``c`` (Eq. 3; :func:`cfsr._words.isi_in_words`'s numbers), ``spread`` is
+    ``(max - min - 1) / mean`` of the whole intervals containing a step of ``[c - radius, c +
+    radius]`` (clipped to ``[a, b)``): the one containing the first step, then one per spike
+    inside, ending at the next spike. An interval open at the search range's end is only a
+    bound on its length, so it is left out, and with fewer than two whole intervals the
+    spread is 0 (no evidence of change). <= 0 for a steady pixel (lengths differ by at most
+    one step). ``loc``: scratch of at least ``2 * radius + 1`` steps.
 
-    The intervals are the TFI values of those steps (:func:`cfsr._words.isi_in_words`, open
-    ends by its rule), each counted once: the one containing the first step, then one per
-    spike inside, ending at the next spike. <= 0 for a steady pixel (lengths differ by at
-    most one step). ``loc``: scratch of at least ``2 * radius + 1`` steps.
+    One walk gives both, with the open-interval rule of ``isi_in_words`` written out for the
+    two intervals that can be open (the first and the last): inlining ``isi_in_words`` at
+    three places made this kernel take ~15 s to compile.
     """
     t0 = max(a, c - radius)
     t1 = min(b - 1, c + radius)
-    v = isi_in_words(words, r, lo, t0, a, b)
-    vmin = v
-    vmax = v
-    tot = v
+    p0 = prev_spike(words, r, lo, t0, a)  # the spike that opens the first interval
     ns = range_times(words, r, lo, t0 + 1, t1 + 1, loc)  # each later interval starts here
-    for i in range(ns - 1):
-        d = loc[i + 1] - loc[i]
-        vmin = min(vmin, d)
-        vmax = max(vmax, d)
-        tot += d
-    if ns > 0:
-        s = loc[ns - 1]
-        nx = next_spike(words, r, lo, s + 1, b)
-        d = nx - s if nx >= 0 else isi_in_words(words, r, lo, s, a, b)
-        vmin = min(vmin, d)
-        vmax = max(vmax, d)
-        tot += d
-    return (vmax - vmin - 1) / (tot / (ns + 1))
+    nx = next_spike(words, r, lo, t1 + 1, b)  # the spike that closes the last one
+    vmin = np.int64(1) << 40
+    vmax = np.int64(0)
+    tot = np.int64(0)
+    k = 0  # closed intervals seen
+    # the first interval, containing t0: from p0 to the first spike after t0
+    end = loc[0] if ns > 0 else nx
+    if p0 >= 0 and end >= 0:
+        v = end - p0
+        vmin = min(vmin, v)
+        vmax = max(vmax, v)
+        tot += v
+        k += 1
+    elif p0 >= 0:  # open on the right: no spike after t0 in range
+        bound = b - p0
+        pp = prev_spike(words, r, lo, p0 - 1, a)
+        v = max(bound, p0 - pp) if pp >= 0 else bound
+    elif end >= 0:  # open on the left: no spike at or before t0 in range
+        bound = end - a + 1
+        if ns > 1:
+            nn = loc[1]
+        elif ns == 1:
+            nn = nx
+        else:
+            nn = next_spike(words, r, lo, end + 1, b)
+        v = max(bound, nn - end) if nn >= 0 else bound
+    else:
+        v = b - a + 1
+    isi_c = v  # c lies in the first interval unless a spike falls in (t0, c]
+    for i in range(ns):
+        s = loc[i]
+        if i + 1 < ns or nx >= 0:
+            d = loc[i + 1] - s if i + 1 < ns else nx - s
+            vmin = min(vmin, d)
+            vmax = max(vmax, d)
+            tot += d
+            k += 1
+        else:  # the last interval, open on the right
+            pp = loc[i - 1] if i > 0 else p0
+            d = max(b - s, s - pp) if pp >= 0 else b - s
+        if s <= c:
+            isi_c = d
+    if k < 2:
+        return 0.0, isi_c
+    return (vmax - vmin - 1) / (tot / k), isi_c
 
 
 @njit(parallel=True, cache=True)
@@ -101,7 +134,7 @@ def _steady_kernel(
 ):  # pragma: no cover - numba
     # the spread searches the TFI's range whatever range the words cover, so its open-ended
     # intervals do not depend on who gathered the words
-    """Per pixel from its words of ``[lo, hi)``: :func:`interval_spread` around ``c``, the TFI
+    """Per pixel from its words of ``[lo, hi)``: :func:`interval_stats` around ``c``, the TFI
     interval at ``c`` (``m`` steps each side) and, for each span ``[spans[j, 0], spans[j, 1])``,
     the ``isi`` span rate (:func:`cfsr.methods.tfp.span_rate`; the TFI at ``c`` below two
     spikes: :func:`cfsr.methods.tfp.static_rate`'s rule). Reads ``store[y]`` (pixel ``x`` at
@@ -124,9 +157,9 @@ def _steady_kernel(
             base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):
             r = base + step * x
-            iv = isi_in_words(words, r, lo, c, a, b)
+            sp, iv = interval_stats(words, r, lo, c, radius, a, b, loc)
             isi[y, x] = iv
-            spread[y, x] = np.float32(interval_spread(words, r, lo, c, radius, a, b, loc))
+            spread[y, x] = np.float32(sp)
             for j in range(k_spans):
                 sa = spans[j, 0]
                 sb = spans[j, 1]
@@ -182,7 +215,7 @@ def steadiness(
     Returns
     -------
     spread : ndarray (H, W) float32
-        :func:`interval_spread` (relative, unitless; <= 0 for a steady pixel).
+        :func:`interval_stats` (relative, unitless; <= 0 for a steady pixel).
     isi : ndarray (H, W) int32
         The TFI interval at ``center`` in steps (``1 / isi`` is :func:`tfi_rate`'s value).
     rates : ndarray (len(spans), H, W) float32
@@ -243,7 +276,7 @@ def steady_mask(
 ) -> np.ndarray:
     """Coarse dynamic mask: ``spread > max(tol, noise_factor * noise)``, regularised.
 
-    ``tol`` and ``noise`` are relative interval spreads (see :func:`interval_spread`,
+    ``tol`` and ``noise`` are relative interval spreads (see :func:`interval_stats`,
     :func:`noise_level`); ``close_size`` pixels (<= 1: the per-pixel test alone).
     """
     from cfsr.methods.masks import regularise
