@@ -67,6 +67,12 @@ class Acquisition:
             self._thread.join(timeout)
 
     @property
+    def thread_ident(self) -> int | None:
+        """``threading`` ident of the acquisition thread once started (for per-thread CPU
+        time: ``time.pthread_getcpuclockid``)."""
+        return None if self._thread is None else self._thread.ident
+
+    @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 

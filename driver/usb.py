@@ -25,7 +25,6 @@ import array
 import errno
 import logging
 import time
-import zlib
 from typing import Any
 
 import numpy as np
@@ -424,7 +423,7 @@ class UsbCameraSource(Source):
             self._c["short_blocks"] += 1
             return None
         payload = v[P.HEADER_BYTES : P.HEADER_BYTES + plen]
-        if zlib.crc32(payload) != hdr.payload_crc:
+        if P.payload_crc32(payload) != hdr.payload_crc:
             self._c["crc_errors"] += 1
             return None
         flags = BlockFlags.NONE

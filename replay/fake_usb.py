@@ -6,21 +6,28 @@ caller's ``array.array``); only the layer below pyusb (normally libusb) is emula
 :class:`replay.camera_model.CameraModel`. Fast unit tests of the driver logic use it; the
 umockdev tier (:mod:`replay.umockdev_camera`) runs the real libusb instead. Importing this
 module needs pyusb (it is test tooling; the driver itself imports pyusb lazily).
+
+:class:`PreloadedUsbBackend` is the same device with its bulk stream built once in memory:
+each read is one copy of a ready block plus a fresh 64-byte header, so a benchmark of it
+measures the host side (pyusb, the driver, the ring), not the emulator
+(``service/benchmarks.py``).
 """
 
 from __future__ import annotations
 
 import ctypes
+import dataclasses
 import errno
 import time
 from types import SimpleNamespace
 
+import numpy as np
 import usb.backend
 
 from driver import protocol as P
 from replay.camera_model import CameraModel
 
-__all__ = ["FakeUsbBackend", "STRINGS"]
+__all__ = ["FakeUsbBackend", "PreloadedUsbBackend", "STRINGS"]
 
 STRINGS = {1: "CFSR emulated", 2: "Spike Camera 400x250 (emulated)", 3: "EMU00001"}
 
@@ -205,3 +212,79 @@ class FakeUsbBackend(usb.backend.IBackend):
         addr, _ = data.buffer_info()
         ctypes.memmove(addr, payload, n)
         return n
+
+
+class PreloadedUsbBackend(FakeUsbBackend):
+    """:class:`FakeUsbBackend` whose bulk stream is ``blocks`` blocks built once, in memory.
+
+    Control requests go to the model as in :class:`FakeUsbBackend`. After ``START``, the
+    first read builds ``blocks`` consecutive blocks with the model (unpaced); from then on a
+    read of one block copies the next of them into the caller's buffer (one ``memmove``, what
+    the kernel's copy to user memory costs on a real host) and writes a fresh header into it
+    (the device's frame counter keeps counting; payloads repeat every ``blocks`` blocks). The
+    copy's time is summed in :attr:`copy_s` so a benchmark can tell it apart.
+
+    Only whole-block reads are served and faults are not emulated: it exists to measure the
+    host side with no emulator in the loop.
+    """
+
+    def __init__(self, model: CameraModel, *, blocks: int = 16) -> None:
+        super().__init__(model)
+        if blocks < 1:
+            raise ValueError(f"blocks must be >= 1, got {blocks}")
+        self.n_blocks = int(blocks)
+        self._stream: np.ndarray | None = None
+        self._headers: list[P.BlockHeader] = []
+        self._first = 0  # device index of the first block built
+        self.served = 0  # blocks served since the stream was built
+        self.copy_s = 0.0
+
+    def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
+        r = super().ctrl_transfer(dev_handle, bmRequestType, bRequest, wValue, wIndex, data,
+                                  timeout)
+        if bmRequestType == P.RT_VENDOR_OUT and bRequest in (P.REQ_START, P.REQ_STOP):
+            self._stream = None  # START fixes the block size: build again at the next read
+        return r
+
+    def _build(self) -> None:
+        m = self.model
+        bb = m.block_bytes
+        stream = np.empty((self.n_blocks, bb), np.uint8)
+        headers = []
+        self._first = m.next_index
+        for k in range(self.n_blocks):
+            r = m.bulk_in(stream[k].ctypes.data, bb)
+            if r != (0, bb):
+                raise RuntimeError(f"the model did not deliver a whole block ({r})")
+            h = P.parse_header(stream[k, :64])
+            assert h is not None
+            headers.append(h)
+        self._stream, self._headers, self.served = stream, headers, 0
+
+    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
+        if ep != P.EP_IN or intf not in self.claimed:
+            raise _err(errno.EPIPE, "Pipe error")
+        if self._stream is None:
+            if not self.model.streaming:
+                return super().bulk_read(dev_handle, ep, intf, buff, timeout)
+            self._build()
+        stream = self._stream
+        addr, count = buff.buffer_info()
+        n = count * buff.itemsize
+        bb = stream.shape[1]
+        if n != bb:
+            raise _err(errno.EIO, f"the preloaded stream serves {bb}-byte reads, not {n}")
+        k = self.served % self.n_blocks
+        t0 = time.perf_counter()
+        ctypes.memmove(addr, stream[k].ctypes.data, bb)
+        self.copy_s += time.perf_counter() - t0
+        if self.served >= self.n_blocks:  # a later lap: the device's counter moved on
+            h = self._headers[k]
+            lap = self.served // self.n_blocks
+            hdr = P.pack_header(dataclasses.replace(
+                h, first_index=h.first_index + lap * self.n_blocks * h.frame_count,
+                sequence=h.sequence + lap * self.n_blocks, flags=0))
+            ctypes.memmove(addr, hdr, len(hdr))
+        self.served += 1
+        self.reads += 1
+        return bb

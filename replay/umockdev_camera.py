@@ -158,11 +158,14 @@ class UsbdevfsCamera:
         self.counts: dict[int, int] = {}
         self.errors: list[str] = []
         self.max_block_s = 0.02  # longest the handler blocks waiting for data
+        #: ``threading`` ident of the thread umockdev calls the handler on (for CPU time)
+        self.thread_ident: int | None = None
         self._cb = _HANDLE_IOCTL(self._handle)  # keep the callback alive
 
     # -- umockdev plumbing ------------------------------------------------------------------
     def _handle(self, handler, client, user):
         um = self.um
+        self.thread_ident = threading.get_ident()
         try:
             req = um.umockdev_ioctl_client_get_request(client)
             self.counts[req] = self.counts.get(req, 0) + 1

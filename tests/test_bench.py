@@ -49,7 +49,17 @@ def test_bench_quick_throughput_json(tmp_path):
     rtf = res["realtime_factor"]
     assert rtf["streaming_state"] > 0
     assert rtf["acquisition"] is not None and rtf["acquisition"] > 0, res["acquisition"]
-    assert res["acquisition"]["lost_frames"] == 0
+    acq = res["acquisition"]
+    assert acq["lost_frames"] == 0
+    # both figures, several runs each: the driver alone and the emulated camera end to end
+    for part in ("driver", "end_to_end"):
+        fig = acq[part]
+        assert fig["n_runs"] == len(fig["runs"]) >= 3, fig
+        assert 0 < fig["realtime_factor_min"] <= fig["realtime_factor"] <= fig[
+            "realtime_factor_max"]
+        assert fig["lost_frames"] == 0 and fig["consumer"]["unaccounted"] == 0
+    assert acq["realtime_factor"] == acq["end_to_end"]["realtime_factor"]
+    assert "driver alone" in acq["source"]
     for m in ("tfp", "csr", "cfsr"):
         assert res["fps"][m] > 0
         sc = res["scaling"][m]  # cost at 1 and 2 threads (or 1 where numba has one thread)
@@ -112,3 +122,45 @@ def test_bench_quick_sweep(tmp_path, capsys):
     static = [r for r in by["static"] if r["method"] == "cfsr"]
     assert all(r["psnr_delta_vs_full"] == 0.0 and r["fine_fraction"] == 0.0 for r in static)
     assert "worst frame" in capsys.readouterr().out
+
+
+def _fake_run(rtf: float, lost: int = 0, cpu: float | None = 1.0) -> dict:
+    return {"realtime_factor": rtf, "lost_frames": lost,
+            "cpu_ms_per_block": {"driver": cpu, "process": 2.0},
+            "consumer": {"frames": 10, "gaps": 0, "unaccounted": 0}}
+
+
+def test_summarize_runs_reports_median_spread_and_summed_loss():
+    from service.benchmarks import summarize_runs
+
+    runs = [_fake_run(3.0), _fake_run(1.0, lost=2, cpu=None), _fake_run(2.0, cpu=3.0)]
+    s = summarize_runs(runs, "somewhere")
+    assert (s["realtime_factor"], s["realtime_factor_min"], s["realtime_factor_max"]) == (
+        2.0, 1.0, 3.0)
+    assert s["frames_per_s"] == 80_000 and s["n_runs"] == 3 and len(s["runs"]) == 3
+    assert s["lost_frames"] == 2 and s["consumer"]["frames"] == 30
+    assert s["cpu_ms_per_block"] == {"driver": 2.0, "process": 2.0}  # runs without a value skip
+    assert s["source"] == "somewhere" and s["cpu_bound_realtime_factor"] is None
+    runs[0]["cpu_bound_realtime_factor"], runs[2]["cpu_bound_realtime_factor"] = 4.0, 6.0
+    assert summarize_runs(runs, "x")["cpu_bound_realtime_factor"] == 5.0
+    with pytest.raises(ValueError, match="no runs"):
+        summarize_runs([], "x")
+
+
+def test_driver_throughput_measures_the_driver_alone_with_zero_loss():
+    pytest.importorskip("usb.core")
+    from replay.pattern import pattern_recording
+    from service.benchmarks import driver_throughput
+
+    res = driver_throughput(seconds=1.0, runs=2, recording=pattern_recording(512))
+    assert res["n_runs"] == 2 and "no emulator" in res["source"]
+    for run in res["runs"]:
+        assert run["realtime_factor"] > 0 and run["frames"] > 0 and run["blocks"] > 0
+        assert run["lost"] == {"driver_index_gaps": 0, "device_dropped": 0, "ring": 0}
+        assert run["consumer"]["gaps"] == 0 and run["consumer"]["unaccounted"] == 0
+        cpu = run["cpu_ms_per_block"]
+        assert cpu["driver"] is not None and cpu["driver"] > 0  # the driver's own thread
+        assert cpu["emulator"] is None  # no emulator runs here
+        assert 0 <= cpu["transport_copy"] <= cpu["driver"]
+        assert run["cpu_bound_realtime_factor"] > 0
+    assert res["lost_frames"] == 0

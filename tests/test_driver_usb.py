@@ -4,8 +4,6 @@ libusb under umockdev in ``tests/usb/umock_cases.py``."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from livehelpers import wait_until
@@ -16,7 +14,7 @@ from driver import protocol as P  # noqa: E402
 from driver.source import BlockFlags, CameraControl, ReplayControl, SourceState  # noqa: E402
 from driver.usb import UsbCameraSource  # noqa: E402
 from replay.camera_model import CameraModel  # noqa: E402
-from replay.fake_usb import FakeUsbBackend  # noqa: E402
+from replay.fake_usb import FakeUsbBackend, PreloadedUsbBackend  # noqa: E402
 from replay.pattern import pattern_recording  # noqa: E402
 
 
@@ -68,6 +66,16 @@ def test_protocol_sizes():
     assert P.parse_header(bytes(bad)) is None
 
 
+def test_payload_crc_is_zlibs_crc32():
+    import zlib
+
+    data = np.random.default_rng(1).integers(0, 256, 3 * 12500 + 7, dtype=np.uint8)
+    assert P.CRC32_IMPL in ("isal", "zlib_ng", "zlib")
+    assert P.payload_crc32(data) == zlib.crc32(data)
+    assert P.payload_crc32(data[5:], 123) == zlib.crc32(data[5:], 123)
+    assert P.payload_crc32(b"") == 0
+
+
 def test_enumerate_configure_and_byte_exact(rec):
     model, src = _open(rec)
     assert src.state == SourceState.STREAMING
@@ -112,12 +120,14 @@ def test_unplug_and_replug_reconnects_with_backoff(rec, kind):
     model, src = _open(rec)
     _read(src, 2, rec)
     model.inject(kind, seconds=0.3)
-    states = set()
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 0.25:
-        assert src.read_block(0.05) is None
-        states.add(src.state)
-    assert states & {SourceState.DISCONNECTED, SourceState.BACKOFF}
+    gone = {SourceState.DISCONNECTED, SourceState.BACKOFF}
+
+    def noticed() -> bool:
+        assert src.read_block(0.05) is None  # nothing arrives while the camera is away
+        return src.state in gone
+
+    wait_until(noticed, 5, lambda: f"the unplug to be noticed (state {src.state}, "
+               f"counters {src.counters()})", interval=0)
     assert src.counters()["disconnects"] == 1
     blocks = _read(src, 4, rec)
     c = src.counters()
@@ -132,7 +142,9 @@ def test_paced_stream_fifo_overflow_is_counted(rec):
     # the driver counts exactly those from the index gap
     model, src = _open(rec, paced=True, rate_hz=20000, fifo_frames=256)
     _read(src, 2, rec)
-    time.sleep(0.1)  # 2000 frames made, only 256 fit
+    # the host pauses until the sensor has made 2000 frames more: only 256 fit in the FIFO
+    wait_until(lambda: model.sensor_index(model.clock()) - model.next_index > 2000, 5,
+               "the device FIFO to overflow", interval=0.01)
     _read(src, 3, rec)
     c = src.counters()
     assert model.dropped_total > 0
@@ -151,3 +163,22 @@ def test_no_camera_keeps_trying(rec):
     assert src.counters()["connect_failures"] >= 2
     assert "no USB device" in (src.last_error or "")
     src.close()
+
+
+def test_preloaded_backend_serves_consecutive_byte_exact_blocks(rec):
+    # 700 frames, 64 per block: 175 blocks make a whole number of laps of the recording, so
+    # the payloads served again in the second lap are still the frames their headers name
+    backend = PreloadedUsbBackend(CameraModel(rec), blocks=175)
+    src = UsbCameraSource(frames_per_block=64, backend=backend, read_timeout_ms=300)
+    src.open()
+    blocks = _read(src, 400, rec)  # two laps and more: the headers are rewritten
+    assert [b.index for b in blocks] == list(range(0, 400 * 64, 64))
+    c = src.counters()
+    assert c["lost_frames"] == 0 and c["crc_errors"] == 0 and c["bad_headers"] == 0
+    assert backend.served == 400 and backend.copy_s > 0
+    src.close()
+
+
+def test_preloaded_backend_checks_its_arguments(rec):
+    with pytest.raises(ValueError, match="blocks"):
+        PreloadedUsbBackend(CameraModel(rec), blocks=0)
