@@ -13,7 +13,15 @@ from numba import njit, prange
 
 from cfsr.layout import Layout
 
-__all__ = ["LANES", "count_packed", "isi_packed", "isi_packed_at", "stored_to_image"]
+__all__ = [
+    "LANES",
+    "count_packed",
+    "isi_packed",
+    "isi_packed_at",
+    "stored_to_image",
+    "stored_view",
+    "upright",
+]
 
 # LANES[v] holds bit k of byte v in byte-lane k of a uint64, so summing LANES over frames
 # counts 8 pixels at once (SWAR); lanes are spilled to the totals before they reach 255.
@@ -140,10 +148,19 @@ def isi_packed_at(
     return _isi_at_kernel(packed, px, int(center), int(lo), int(hi), out)
 
 
+def stored_view(flat: np.ndarray, stored_width: int, height: int, width: int) -> np.ndarray:
+    """Per-pixel values in stored order -> ``(H, W)`` view of the image pixels in stored rows
+    and columns (head columns sit at the right of every stored row, whatever the flips)."""
+    return flat[: height * stored_width].reshape(height, stored_width)[:, :width]
+
+
+def upright(stored: np.ndarray, fliplr: bool, flipud: bool) -> np.ndarray:
+    """A :func:`stored_view` -> the upright image (a view)."""
+    img = stored[:, ::-1] if fliplr else stored
+    return img[::-1] if flipud else img
+
+
 def stored_to_image(flat: np.ndarray, layout: Layout) -> np.ndarray:
     """Per-pixel values in stored order -> upright ``(H, W)`` view (head columns dropped)."""
-    img = flat[: layout.height * layout.stored_width].reshape(layout.height, layout.stored_width)
-    img = img[:, : layout.width]  # head columns sit at the right of every stored row
-    if layout.fliplr:
-        img = img[:, ::-1]
-    return img[::-1] if layout.flipud else img
+    view = stored_view(flat, layout.stored_width, layout.height, layout.width)
+    return upright(view, bool(layout.fliplr), bool(layout.flipud))

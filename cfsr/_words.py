@@ -40,6 +40,7 @@ __all__ = [
     "prev_spike",
     "next_spike",
     "range_times",
+    "ROW_PAD",
     "isi_in_words",
     "count_between",
 ]
@@ -143,6 +144,12 @@ def transpose64(a):  # pragma: no cover - numba
                 a[k] ^= t << sj
         j >>= 1
         m ^= m << np.uint64(j)
+
+
+#: Extra word rows per image row that :func:`row_words` may write beyond the row's pixels (a
+#: stored row's head columns and the 64-pixel alignment of its bytes): a row's word buffer
+#: is ``(pixels + ROW_PAD, words)``.
+ROW_PAD = 80
 
 
 @njit(cache=True, inline="always")

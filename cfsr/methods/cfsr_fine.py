@@ -54,6 +54,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._words import (
+    ROW_PAD,
     PackedWindow,
     count_range,
     isi_in_words,
@@ -385,7 +386,7 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, 
             base = bases[y, 0]
             step = bases[y, 1]
         else:
-            words = np.empty((w + 80, nw), np.uint64)
+            words = np.empty((w + ROW_PAD, nw), np.uint64)
             base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):
             r = base + step * x
@@ -454,7 +455,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
-    store = _scratch((h, w + 80, (hi - lo + 63) >> 6))
+    store = _scratch((h, w + ROW_PAD, (hi - lo + 63) >> 6))
     bases = np.empty((h, 2), np.int64)
     _static_kernel(
         src.packed,

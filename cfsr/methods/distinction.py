@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cfsr._words import geometry, leading_zeros, popcount, row_words, trailing_zeros
+from cfsr._words import ROW_PAD, geometry, leading_zeros, popcount, row_words, trailing_zeros
 from cfsr.methods._spiketimes import pixel_times, row_slab
 
 __all__ = [
@@ -198,7 +198,7 @@ def _distinct_words_kernel(packed, geo, lo, hi, span, out):  # pragma: no cover 
     h, w = out.shape
     nw = (hi - lo + 63) >> 6
     for y in prange(h):
-        words = np.empty((w + 80, nw), np.uint64)
+        words = np.empty((w + ROW_PAD, nw), np.uint64)
         big = np.empty((hi - lo) // 64 + 1, np.int64)
         base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from cfsr._words import PackedWindow, popcount, row_words, word_spikes
+from cfsr._words import ROW_PAD, PackedWindow, popcount, row_words, word_spikes
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
@@ -99,7 +99,7 @@ def _pm_kernel(
         rec_t[d] = thr / d
     for ir in prange(rows.shape[0]):
         yy = rows[ir]
-        words = np.empty((cw + 80, nw + 1), np.uint64)
+        words = np.empty((cw + ROW_PAD, nw + 1), np.uint64)
         words[:, nw] = 0  # the step hi may fall on word nw
         tv = np.empty(hi - lo + 1, np.int64)
         pre = np.empty(nw + 2, np.int64)

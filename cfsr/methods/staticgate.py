@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cfsr._packed import count_packed
+from cfsr._packed import count_packed, stored_view, upright
 from cfsr._words import PackedWindow
 from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
 
@@ -30,17 +30,13 @@ __all__ = ["span_counts", "span_isi_rate", "static_gate"]
 
 
 def _stored(src: PackedWindow, flat: np.ndarray) -> np.ndarray:
-    """Per-pixel values in stored order -> ``(H, W)`` view of the image pixels, stored rows
-    and columns (head columns sit at the right of every stored row, whatever the flips)."""
-    stored_width = int(src.geo[0])
-    return flat[: src.h * stored_width].reshape(src.h, stored_width)[:, : src.w]
+    """:func:`cfsr._packed.stored_view` of ``src``'s geometry."""
+    return stored_view(flat, int(src.geo[0]), src.h, src.w)
 
 
 def _upright(src: PackedWindow, stored: np.ndarray, dtype=np.int32) -> np.ndarray:
     """A :func:`_stored` view -> the upright image (a new ``dtype`` array)."""
-    _, _, flipud, _, dx = (int(v) for v in src.geo)
-    img = stored[:, ::-1] if dx < 0 else stored
-    return (img[::-1] if flipud else img).astype(dtype)
+    return upright(stored, int(src.geo[4]) < 0, bool(src.geo[2])).astype(dtype)
 
 
 def span_counts(src: PackedWindow, a: int, b: int) -> np.ndarray:

@@ -35,6 +35,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._words import (
+    ROW_PAD,
     PackedWindow,
     count_between,
     next_spike,
@@ -51,15 +52,10 @@ __all__ = [
     "steady_mask",
     "check_static",
     "DISTINCTIONS",
-    "ROW_PAD",
 ]
 
 #: Coarse distinctions: ``steady`` (this module) or ``isi_set`` (Eq. 5-6, the paper's).
 DISTINCTIONS = ("steady", "isi_set")
-
-#: Extra word rows per image row that :func:`cfsr._words.row_words` may write (a stored
-#: row's head columns and the 64-bit alignment of its last bytes).
-ROW_PAD = 80
 
 
 @njit(cache=True, inline="always")

@@ -39,7 +39,14 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
+from cfsr.methods.registry import (
+    MAX_UNPACKED_STEPS,
+    MAX_WINDOW_STEPS,
+    Method,
+    Output,
+    Param,
+    register,
+)
 
 __all__ = ["stp_rate"]
 
@@ -158,10 +165,18 @@ register(
             ),
             "u0": Param(0.15, "", "baseline utilisation u0", minimum=1e-6, maximum=0.999),
             "D": Param(
-                1.0, "steps", "recovery time constant tau_D", minimum=1e-3, maximum=40_000.0
+                1.0,
+                "steps",
+                "recovery time constant tau_D",
+                minimum=1e-3,
+                maximum=float(MAX_WINDOW_STEPS),
             ),
             "F": Param(
-                10.0, "steps", "facilitation time constant tau_F", minimum=1e-3, maximum=40_000.0
+                10.0,
+                "steps",
+                "facilitation time constant tau_F",
+                minimum=1e-3,
+                maximum=float(MAX_WINDOW_STEPS),
             ),
             "f": Param(0.15, "", "facilitation increment f", minimum=0.0, maximum=0.999),
         },
