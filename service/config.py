@@ -5,7 +5,8 @@ Three frozen dataclasses, each validated when it is made and then passed on as i
 * :class:`DisplayScale`: how rates become 8-bit pixels (gain mode and gain);
 * :class:`LiveConfig`: what the user chose (method and parameters as a
   :class:`cfsr.config.MethodConfig`, display scale, frame-rate cap); the runtime stores one
-  and :meth:`LiveConfig.changed` makes the next from a partial update;
+  and :meth:`LiveConfig.changed` makes the next from a partial update, a
+  :class:`ConfigChange`;
 * :class:`WorkerConfig`: what the worker needs of it (the effective gain resolved against
   the current source), sent over the process queue and answered by ``version``.
 
@@ -27,6 +28,7 @@ from service.settings import MAX_FPS_RANGE
 
 __all__ = [
     "GAIN_MODES",
+    "ConfigChange",
     "DisplayScale",
     "GainMode",
     "LiveConfig",
@@ -87,6 +89,17 @@ def check_max_fps(max_fps: float) -> float:
 
 
 @dataclass(frozen=True)
+class ConfigChange:
+    """A partial update of the live configuration (``PUT /api/config``, checked for shape
+    by the HTTP model); ``None`` keeps a value. :meth:`LiveConfig.changed` validates it."""
+
+    method: str | None = None
+    params: Mapping[str, Any] | None = None
+    display: Mapping[str, Any] | None = None
+    max_fps: float | None = None
+
+
+@dataclass(frozen=True)
 class LiveConfig:
     """The service's configuration: method, display scale and frame-rate cap."""
 
@@ -97,20 +110,13 @@ class LiveConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "max_fps", check_max_fps(self.max_fps))
 
-    def changed(
-        self,
-        *,
-        method: str | None = None,
-        params: Mapping[str, Any] | None = None,
-        display: Mapping[str, Any] | None = None,
-        max_fps: float | None = None,
-    ) -> LiveConfig:
-        """The next configuration after a partial update, all or nothing (ValueError naming
-        the first bad value; this one is unchanged). Parameters not given keep their
-        values, except on a change of method, which starts from its defaults."""
-        m = self.method.replace(method=method, params=params)
-        d = self.display if display is None else self.display.changed(display)
-        return LiveConfig(m, d, self.max_fps if max_fps is None else max_fps)
+    def changed(self, change: ConfigChange) -> LiveConfig:
+        """The next configuration after the partial update ``change``, all or nothing
+        (ValueError naming the first bad value; this one is unchanged). Parameters not given
+        keep their values, except on a change of method, which starts from its defaults."""
+        m = self.method.replace(method=change.method, params=change.params)
+        d = self.display if change.display is None else self.display.changed(change.display)
+        return LiveConfig(m, d, self.max_fps if change.max_fps is None else change.max_fps)
 
     def public(self) -> dict[str, Any]:
         """The JSON shape of ``GET /api/config`` (without the effective gain)."""

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from service.status import ClientDrops, HubStatus
 from shm.frameslot import FrameSlot, SlotFrame
 
 __all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message", "WS_HEADER"]
@@ -142,17 +143,15 @@ class ClientQueue:
     def pending(self) -> int:
         return 0 if self._item is None else 1
 
-    def describe(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "kind": self.kind,
-            "peer": self.peer,
-            "sent": self.sent,
-            "dropped": self.dropped,
-            "pending": self.pending,
-            "max_fps": self.max_fps,
-            "connected_s": round(time.monotonic() - self.created, 3),
-        }
+    @property
+    def connected_s(self) -> float:
+        """Seconds since the client connected (ms resolution)."""
+        return round(time.monotonic() - self.created, 3)
+
+    def status(self) -> ClientDrops:
+        """This client's counters (one row of ``drops.per_client`` in ``GET /api/status``),
+        read from its attributes of the same names."""
+        return ClientDrops.model_validate(self, from_attributes=True)
 
 
 class FrameHub:
@@ -230,8 +229,14 @@ class FrameHub:
         span = max(now - ts[0], 1e-6)
         return (len(ts) - 1) / span if span < window else len(ts) / window
 
-    def client_stats(self) -> list[dict[str, Any]]:
-        return [c.describe() for c in self.clients.values()]
-
-    def total_client_drops(self) -> int:
-        return self.closed_clients_dropped + sum(c.dropped for c in self.clients.values())
+    def status(self) -> HubStatus:
+        """The hub's report: output rate, newest frame, and every client's counters (the
+        drops total also counts clients that are gone)."""
+        clients = [c.status() for c in list(self.clients.values())]
+        latest = self.latest
+        return HubStatus(
+            output_fps=self.fps(),
+            frame_step=None if latest is None else latest.step,
+            clients=clients,
+            client_drops=self.closed_clients_dropped + sum(c.dropped for c in clients),
+        )

@@ -13,6 +13,16 @@ from starlette.requests import HTTPConnection
 
 from service.config import GainMode
 from service.settings import MAX_FPS_RANGE, RECORDING_NAME_PATTERN
+from service.status import (
+    ClientDrops,
+    Drops,
+    RecordStatus,
+    ReplayState,
+    RingStatus,
+    SourceStatus,
+    StatusModel,
+    WorkerStatus,
+)
 
 __all__ = [
     "ClientDrops",
@@ -22,11 +32,14 @@ __all__ = [
     "Drops",
     "FiniteFloat",
     "Health",
+    "Limits",
     "MethodInfo",
+    "NumberRange",
     "RecordRequest",
     "RecordStatus",
     "ReplayState",
     "ReplayUpdate",
+    "RingStatus",
     "SeekRequest",
     "SourceItem",
     "SourceSelect",
@@ -135,6 +148,30 @@ class ConfigModel(BaseModel):
     version: int | None = Field(None, description="after PUT: the worker's config version")
 
 
+class NumberRange(BaseModel):
+    minimum: float = Field(description="smallest accepted value")
+    maximum: float = Field(description="largest accepted value")
+
+
+class Limits(BaseModel):
+    """Bounds the API enforces, for clients that check input before sending it.
+
+    Why an endpoint: the viewer's form fields take them from here, so each rule is written
+    once (:mod:`service.settings`) and a change there reaches the page with no edit to it.
+    """
+
+    max_fps: NumberRange = Field(
+        default_factory=lambda: NumberRange(minimum=MAX_FPS_RANGE[0], maximum=MAX_FPS_RANGE[1]),
+        description="frames per second the worker (config `max_fps`) or one WebSocket client "
+        "may ask for",
+    )
+    recording_name_pattern: str = Field(
+        RECORDING_NAME_PATTERN,
+        description="regular expression a recording's name (POST /api/record) must match; "
+        "Python and ECMAScript read it alike",
+    )
+
+
 class ConfigUpdate(BaseModel):
     method: str | None = None
     params: dict[str, Any] | None = Field(
@@ -168,20 +205,6 @@ class MethodInfo(BaseModel):
     max_window_steps: int | None = Field(
         None, description="most steps a parameter set may reach around t (before + after)"
     )
-
-
-class ReplayState(BaseModel):
-    playing: bool
-    speed: float
-    loop: bool
-    position: int = Field(description="file frame of the next block")
-    start: int
-    end: int
-    n_frames: int
-    mode: str
-    loops: int
-    ended: bool
-    rate_hz: float
 
 
 class ReplayUpdate(BaseModel):
@@ -219,73 +242,6 @@ class SourceSelect(BaseModel):
     id: str = Field(description="an id from GET /api/sources")
 
 
-class SourceStatus(BaseModel):
-    id: str | None
-    kind: str | None
-    name: str | None
-    state: str | None
-    capabilities: list[str] = []
-    width: int | None = None
-    height: int | None = None
-    rate_hz: float | None = None
-    counters: dict[str, Any] = {}
-    replay: ReplayState | None = None
-    last_error: str | None = None
-
-
-class ClientDrops(BaseModel):
-    id: int
-    kind: str
-    peer: str
-    sent: int
-    dropped: int
-    pending: int
-    max_fps: float | None
-    connected_s: float
-
-
-class Drops(BaseModel):
-    usb: int = Field(0, description="frames lost on the USB link (index gaps, bad blocks)")
-    replay: int = Field(0, description="frames a paced replay skipped to stay on schedule")
-    ring: int = Field(0, description="frames the worker lost because the ring overran it")
-    worker: int = Field(0, description="frames the worker skipped to show the newest data")
-    clients: int = Field(0, description="frames replaced before a client could receive them")
-    recorder: int = Field(0, description="frames the current/last recording lost")
-    per_client: list[ClientDrops] = []
-
-
-class WorkerStatus(BaseModel):
-    alive: bool
-    ready: bool
-    pid: int | None
-    restarts: int
-    crashes: list[dict[str, Any]]
-    last_errors: list[dict[str, Any]]
-    config_version: int
-    applied_version: int
-    heartbeat_age_s: float | None
-    steps_per_s: float
-    real_time_factor: float
-    frames_out: int
-    gaps: int
-
-
-class RecordStatus(BaseModel):
-    recording: bool
-    path: str | None = None
-    name: str | None = None
-    frames: int = 0
-    bytes: int = 0
-    elapsed_s: float = 0.0
-    lost_frames: int = 0
-    error: str | None = None
-    max_bytes: int | None = None
-    stop_reason: str | None = Field(
-        None, description="why it stopped: stopped, max_frames reached, size cap reached, "
-        "disk nearly full, error"
-    )
-
-
 class RecordRequest(BaseModel):
     action: Literal["start", "stop"]
     name: str | None = Field(
@@ -298,21 +254,3 @@ class RecordRequest(BaseModel):
         description="size cap of the .dat in bytes (default and upper limit: the free space "
         "less 64 MB); the recording stops cleanly there",
     )
-
-
-class StatusModel(BaseModel):
-    uptime_s: float
-    source: SourceStatus
-    method: str
-    params: dict[str, Any]
-    input_steps_per_s: float = Field(description="steps/s entering the ring from the source")
-    real_time_factor: float = Field(description="input steps/s divided by the sensor rate")
-    output_fps: float = Field(description="reconstructed frames/s published by the worker")
-    latency_ms: float = Field(description="newest spike used -> frame published (EMA)")
-    compute_ms: float = Field(description="reconstruction time per frame (EMA)")
-    frame_step: int | None = Field(None, description="step index of the newest frame")
-    drops: Drops
-    worker: WorkerStatus
-    ring: dict[str, Any]
-    clients: int
-    recording: RecordStatus

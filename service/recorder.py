@@ -18,12 +18,17 @@ import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cfsr.datfile import DatWriter
 from cfsr.layout import Layout
 from driver.source import BlockFlags
 from shm.ring import SpikeRing
+
+if TYPE_CHECKING:
+    # not at run time: ``cfsr record`` imports this module (:func:`size_cap`) in the base
+    # install, which has no pydantic; only the live service asks a recorder for its status
+    from service.status import RecordStatus
 
 __all__ = ["Recorder", "RESERVE_BYTES", "free_bytes", "size_cap"]
 
@@ -167,24 +172,29 @@ class Recorder:
             self.error = (self.error + "; " if self.error else "") + f"sidecar not written: {exc}"
         self._reader.close()
 
-    def stop(self, timeout: float = 10.0) -> dict[str, Any]:
+    def stop(self, timeout: float = 10.0) -> RecordStatus:
+        """Stop recording (the file is closed and its sidecar written) and report."""
         self._stop.set()
         self._thread.join(timeout)
-        return self.describe()
+        return self.status()
 
     def wait(self, timeout: float | None = None) -> None:
         self._thread.join(timeout)
 
-    def describe(self) -> dict[str, Any]:
-        return {
-            "recording": self.running,
-            "path": str(self.path),
-            "name": self.path.name,
-            "frames": self.frames,
-            "bytes": self.frames * self.layout.frame_bytes,
-            "elapsed_s": round(time.monotonic() - self.started, 3),
-            "lost_frames": sum(d[1] for d in self.drop_map),
-            "error": self.error,
-            "max_bytes": self.max_bytes,
-            "stop_reason": None if self.running else self.stop_reason,
-        }
+    def status(self) -> RecordStatus:
+        """The recorder's report (``recording`` in ``GET /api/status``, ``GET /api/record``)."""
+        from service.status import RecordStatus
+
+        running = self.running  # read once: a stop reason shows only once it has stopped
+        return RecordStatus(
+            recording=running,
+            path=str(self.path),
+            name=self.path.name,
+            frames=self.frames,
+            bytes=self.frames * self.layout.frame_bytes,
+            elapsed_s=round(time.monotonic() - self.started, 3),
+            lost_frames=sum(d[1] for d in self.drop_map),
+            error=self.error,
+            max_bytes=self.max_bytes,
+            stop_reason=None if running else self.stop_reason,
+        )

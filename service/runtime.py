@@ -12,19 +12,33 @@ import logging
 import math
 import threading
 import time
-from collections import deque
 from datetime import datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cfsr.layout import Layout
+from cfsr.layout import STEP_RATE_HZ, Layout
 from driver.acquisition import Acquisition
-from driver.source import CameraControl, ReplayControl, Source
+from driver.source import ReplayControl, Source
 from service.catalog import SourceCatalog
-from service.config import DisplayScale, LiveConfig, WorkerConfig
+from service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
 from service.settings import RECORDING_NAME_RE, Settings, SourceSpec
+from service.status import (
+    Drops,
+    HubStatus,
+    RateMeter,
+    RecordStatus,
+    SourceReport,
+    StatusModel,
+    WorkerReport,
+    ring_status,
+    source_report,
+)
 from service.worker import WorkerSupervisor
 from shm.frameslot import FrameSlot
 from shm.ring import SpikeRing
+
+if TYPE_CHECKING:
+    from service.hub import FrameHub
+    from service.recorder import Recorder
 
 __all__ = ["Runtime", "ConflictError"]
 
@@ -35,27 +49,14 @@ class ConflictError(RuntimeError):
     """The request cannot be served in the current state (HTTP 409)."""
 
 
-class _RateMeter:
-    def __init__(self, window: float = 2.0) -> None:
-        self.window = window
-        self._s: deque[tuple[float, float]] = deque(maxlen=64)
-
-    def add(self, value: float, t: float | None = None) -> None:
-        self._s.append((time.monotonic() if t is None else t, value))
-
-    def rate(self) -> float:
-        if len(self._s) < 2:
-            return 0.0
-        t1, v1 = self._s[-1]
-        t0, v0 = self._s[0]
-        for t, v in self._s:
-            if t1 - t <= self.window:
-                t0, v0 = t, v
-                break
-        return (v1 - v0) / (t1 - t0) if t1 > t0 else 0.0
-
-
 class Runtime:
+    """Owns the live components and their order of start and stop; answers the routers.
+
+    It keeps no figures of its own beyond what spans components (frames and losses of
+    sources and rings used before the current ones): each component reports its own status
+    and :meth:`status` composes them.
+    """
+
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.catalog = SourceCatalog(settings)
@@ -66,14 +67,13 @@ class Runtime:
         self.source_id: str | None = None
         self.acq: Acquisition | None = None
         self.worker: WorkerSupervisor | None = None
-        self.recorder = None
-        self.last_recording: dict[str, Any] | None = None
+        self.recorder: Recorder | None = None
+        self.last_recording: RecordStatus | None = None
         #: the configuration in force (set by :meth:`start`, changed by :meth:`set_config`)
         self.config: LiveConfig
         self._lock = threading.RLock()
         self.started = time.monotonic()
-        self._in_rate = _RateMeter()
-        self._work_rate = _RateMeter()
+        self._in_rate = RateMeter()  # frames entering the ring (this and earlier rings)
         self._frames_base = 0  # frames published into earlier rings
         self._lost_base: dict[str, float] = {}
         self._sampler_stop = threading.Event()
@@ -135,7 +135,7 @@ class Runtime:
                 except (TypeError, AttributeError):
                     pass
             if w is not None:
-                self._work_rate.add(w.stats().get("steps_ingested", 0.0))
+                w.sample()
 
     # -- sources ----------------------------------------------------------------------------------
     def _ring_for(self, src: Source) -> SpikeRing:
@@ -249,15 +249,9 @@ class Runtime:
     #: A configuration stored before the worker answered: (version, it, the one it replaced).
     _pending_config: tuple[int, LiveConfig, LiveConfig] | None = None
 
-    def set_config(
-        self,
-        *,
-        method: str | None = None,
-        params: dict[str, Any] | None = None,
-        display: dict[str, Any] | None = None,
-        max_fps: float | None = None,
-    ) -> dict[str, Any]:
-        """Validate, hand to the worker, and store once the worker applied it.
+    def set_config(self, change: ConfigChange) -> dict[str, Any]:
+        """Validate ``change``, hand the result to the worker, and store it once the worker
+        applied it.
 
         All or nothing: a value out of range raises ValueError here (the new
         :class:`~service.config.LiveConfig` cannot be made); a configuration the worker
@@ -271,9 +265,7 @@ class Runtime:
         """
         with self._lock:
             self._settle_pending_config()
-            new = self.config.changed(
-                method=method, params=params, display=display, max_fps=max_fps
-            )
+            new = self.config.changed(change)
             if self.worker is None:
                 self.config = new
                 return {**self.get_config(), "state": "applied", "version": None}
@@ -303,7 +295,7 @@ class Runtime:
     # -- recording --------------------------------------------------------------------------------
     def start_recording(
         self, name: str | None, max_frames: int | None = None, max_bytes: int | None = None
-    ) -> dict[str, Any]:
+    ) -> RecordStatus:
         """Record the live stream to ``DATA_DIR/recordings/NAME.dat`` (+ sidecar), capped at
         ``max_bytes`` (default: the free space less the recorder's reserve); OSError when not
         even one block fits."""
@@ -339,9 +331,9 @@ class Runtime:
                 max_frames=max_frames,
                 max_bytes=max_bytes,
             )
-            return self.recorder.describe()
+            return self.recorder.status()
 
-    def stop_recording(self) -> dict[str, Any]:
+    def stop_recording(self) -> RecordStatus:
         with self._lock:
             if self.recorder is None:
                 raise ConflictError("not recording")
@@ -349,102 +341,65 @@ class Runtime:
             self.recorder = None
             return self.last_recording
 
-    def record_status(self) -> dict[str, Any]:
+    def record_status(self) -> RecordStatus:
+        """The recorder's report; once a recording has stopped by itself (cap, max_frames,
+        error) it becomes the last recording, shown until the next one starts."""
         r = self.recorder
         if r is not None:
-            d = r.describe()
-            if not d["recording"]:
-                self.last_recording = d
+            st = r.status()
+            if not st.recording:
+                self.last_recording = st
                 self.recorder = None
-            return d
+            return st
         if self.last_recording is not None:
-            return {**self.last_recording, "recording": False}
-        return {"recording": False}
+            return self.last_recording.model_copy(update={"recording": False})
+        return RecordStatus(recording=False)
 
     # -- status -----------------------------------------------------------------------------------
-    def status(self, hub=None) -> dict[str, Any]:
-        src, w, ring = self.source, self.worker, self.ring
-        rate_hz = src.info.rate_hz if src else 40000.0
-        wst = w.stats() if w else {}
+    def _rate_hz(self) -> float:
+        """The current source's sensor rate, steps/s (the nominal one with no source)."""
+        return self.source.info.rate_hz if self.source else float(STEP_RATE_HZ)
+
+    def source_report(self) -> SourceReport:
+        """The current source's and its acquisition thread's report."""
+        return source_report(self.source_id, self.source, self.acq, self._rate_hz())
+
+    def status(self, hub: FrameHub | None = None) -> StatusModel:
+        """``GET /api/status``: every component's own report, composed; the drops of sources
+        used before the current one are kept (:meth:`_keep_source_counters`)."""
+        rate_hz = self._rate_hz()
+        source = self.source_report()
+        worker = self.worker.status(rate_hz) if self.worker else WorkerReport.absent()
+        frames = hub.status() if hub else HubStatus()
+        recording = self.record_status()
         in_rate = self._in_rate.rate()
-        w_rate = self._work_rate.rate()
-        counters = src.counters() if src else {}
-        source = {
-            "id": self.source_id,
-            "kind": src.info.kind if src else None,
-            "name": src.info.name if src else None,
-            "state": src.state.value if src else None,
-            "capabilities": src.capabilities() if src else [],
-            "width": src.info.layout.width if src else None,
-            "height": src.info.layout.height if src else None,
-            "rate_hz": rate_hz,
-            "counters": {**counters, **(self.acq.stats() if self.acq else {})},
-            "replay": None,
-            "last_error": (src.last_error if src else None)
-            or (self.acq.last_error if self.acq else None),
-        }
-        ctl = src.get_facility(ReplayControl) if src else None
-        if ctl is not None:
-            source["replay"] = ctl.state()
-        cam = src.get_facility(CameraControl) if src else None
-        if cam is not None:
-            try:
-                source["counters"]["device"] = cam.device_status()
-            except Exception as exc:  # noqa: BLE001 - the camera may be gone right now
-                source["counters"]["device"] = {"error": str(exc)}
-        rec = self.record_status()
-        usb_lost = counters.get("lost_frames", 0) if src and src.info.kind == "usb" else 0
-        per_client = hub.client_stats() if hub else []
-        drops = {
-            "usb": int(usb_lost + self._lost_base.get("lost_frames", 0)),
-            "replay": int(
-                counters.get("replay_behind_frames", 0)
-                + self._lost_base.get("replay_behind_frames", 0)
+        lost_before = self._lost_base
+        return StatusModel(
+            uptime_s=time.monotonic() - self.started,
+            source=source.status,
+            method=self.config.method.method,
+            params=dict(self.config.method.params),
+            input_steps_per_s=in_rate,
+            real_time_factor=in_rate / rate_hz if rate_hz else 0.0,
+            output_fps=frames.output_fps,
+            latency_ms=worker.latency_ms,
+            compute_ms=worker.compute_ms,
+            frame_step=frames.frame_step,
+            drops=Drops(
+                usb=int(source.usb_lost_frames + lost_before.get("lost_frames", 0)),
+                replay=int(source.replay_behind_frames
+                           + lost_before.get("replay_behind_frames", 0)),
+                ring=worker.ring_lost_frames,
+                worker=worker.skipped_frames,
+                clients=frames.client_drops,
+                recorder=recording.lost_frames,
+                per_client=frames.clients,
             ),
-            "ring": int(wst.get("ring_lost_frames", 0)),
-            "worker": int(wst.get("worker_skip_frames", 0)),
-            "clients": int(hub.total_client_drops()) if hub else 0,
-            "recorder": int(rec.get("lost_frames", 0) or 0),
-            "per_client": per_client,
-        }
-        wd = w.describe() if w else {
-            "alive": False, "ready": False, "pid": None, "restarts": 0, "crashes": [],
-            "last_errors": [], "config_version": 0, "applied_version": -1,
-            "heartbeat_age_s": None,
-        }
-        wd.update(
-            {
-                "steps_per_s": w_rate,
-                "real_time_factor": w_rate / rate_hz if rate_hz else 0.0,
-                "frames_out": int(wst.get("frames_out", 0)),
-                "gaps": int(wst.get("gaps", 0)),
-            }
+            worker=worker.status,
+            ring=ring_status(self.ring, self._frames_base, rate_hz),
+            clients=len(frames.clients),
+            recording=recording,
         )
-        latest = hub.latest if hub else None
-        return {
-            "uptime_s": time.monotonic() - self.started,
-            "source": source,
-            "method": self.config.method.method,
-            "params": dict(self.config.method.params),
-            "input_steps_per_s": in_rate,
-            "real_time_factor": in_rate / rate_hz if rate_hz else 0.0,
-            "output_fps": hub.fps() if hub else 0.0,
-            "latency_ms": float(wst.get("latency_ms", 0.0)),
-            "compute_ms": float(wst.get("compute_ms", 0.0)),
-            "frame_step": latest.step if latest is not None else None,
-            "drops": drops,
-            "worker": wd,
-            "ring": {
-                "path": str(ring.path) if ring else None,
-                "slots": ring.n_slots if ring else 0,
-                "slot_frames": ring.slot_frames if ring else 0,
-                "capacity_s": (ring.capacity_frames / rate_hz) if ring else 0.0,
-                "frames_published": (self._frames_base + ring.frames_published) if ring else 0,
-                "blocking": bool(ring.blocking) if ring else False,
-            },
-            "clients": len(per_client),
-            "recording": rec,
-        }
 
     @property
     def layout(self) -> Layout | None:

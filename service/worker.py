@@ -14,9 +14,9 @@ rejected with the reason while the previous configuration keeps running
 
 Everything that crosses the process boundary is a small frozen dataclass (pickled by the
 queues): commands :class:`Configure`, :class:`Attach`, :class:`Inject`, :class:`Stop` to the
-worker; events :class:`Ready`, :class:`ConfigAnswer`, :class:`WorkerError`, :class:`Crashed`
-back. A :class:`~service.config.WorkerConfig` was validated where it was made (in the web
-process) and is applied as is.
+worker; events :class:`Ready`, :class:`ConfigAnswer`, :class:`WorkerError` (a failed frame,
+or a fatal error) back. A :class:`~service.config.WorkerConfig` was validated where it was
+made (in the web process) and is applied as is.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from typing import Any, Literal, NamedTuple
 
 from cfsr.layout import Layout
 from service.config import WorkerConfig
+from service.status import RateMeter, WorkerReport, WorkerStatus
 from shm.frameslot import FrameSlot
 
 __all__ = [
@@ -42,7 +43,6 @@ __all__ = [
     "ConfigAck",
     "ConfigAnswer",
     "Configure",
-    "Crashed",
     "Inject",
     "Ready",
     "Stop",
@@ -105,16 +105,16 @@ class ConfigAnswer:
 
 @dataclass(frozen=True)
 class WorkerError:
-    """A frame failed (the worker goes on); ``message`` holds the traceback."""
+    """An exception in the worker, ``message`` with its traceback: a frame failed and the
+    worker goes on, or (``fatal``) it is dying of it (the supervisor restarts it)."""
 
     message: str
+    fatal: bool = False
 
-
-@dataclass(frozen=True)
-class Crashed:
-    """The worker is dying of an uncaught exception (``message``: the traceback)."""
-
-    message: str
+    @classmethod
+    def of(cls, exc: BaseException, *, fatal: bool = False) -> WorkerError:
+        """The event for ``exc``, being handled now (its traceback is the current one)."""
+        return cls(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}", fatal)
 
 
 class ConfigAck(NamedTuple):
@@ -361,14 +361,14 @@ def worker_main(
             except Exception as exc:  # noqa: BLE001 - a method failure must not kill the worker
                 consecutive_errors += 1
                 w.bump("errors")
-                evt_q.put(WorkerError(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+                evt_q.put(WorkerError.of(exc))
                 time.sleep(min(1.0, 0.05 * consecutive_errors))
                 continue
             if not pushed and not produced:
                 time.sleep(0.001)
     except BaseException as exc:  # noqa: BLE001 - report before dying
         try:
-            evt_q.put(Crashed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+            evt_q.put(WorkerError.of(exc, fatal=True))
             time.sleep(0.1)
         finally:
             raise
@@ -421,7 +421,7 @@ class WorkerSupervisor:
         self._started_at = 0.0
         self._last_message: str | None = None
         self._counter_base: dict[str, float] = {}
-        self._last_stats: dict[str, float] = {}
+        self._ingest = RateMeter()  # steps ingested per second, sampled by :meth:`sample`
 
     # -- lifecycle --------------------------------------------------------------------------------
     def start(self, ring_path: str, layout: Layout) -> None:
@@ -578,11 +578,11 @@ class WorkerSupervisor:
             elif isinstance(ev, ConfigAnswer):
                 reason = (ev.reason or "")[:4000]
                 self._answer(ev.version, "rejected", f"rejected by the worker: {reason}")
+            elif isinstance(ev, WorkerError) and ev.fatal:
+                self._last_message = ev.message[:4000]  # reported with the crash
             elif isinstance(ev, WorkerError):
                 self.errors.append({"time": time.time(), "message": ev.message[:4000]})
                 log.warning("worker error: %s", ev.message.splitlines()[0])
-            elif isinstance(ev, Crashed):
-                self._last_message = ev.message[:4000]
 
     def _monitor(self) -> None:
         backoff = 0.5
@@ -647,16 +647,37 @@ class WorkerSupervisor:
         st["heartbeat_age_s"] = (time.monotonic() - hb) if hb else math.inf
         return st
 
-    def describe(self) -> dict[str, Any]:
+    def sample(self) -> None:
+        """Take one sample of the steps ingested (for :meth:`status`'s ``steps_per_s``);
+        called on a clock by the runtime's sampler, so the rate does not depend on how often
+        the status is read."""
+        self._ingest.add(self.stats().get("steps_ingested", 0.0))
+
+    def status(self, rate_hz: float) -> WorkerReport:
+        """The supervisor's report: the worker's state (``worker`` in ``GET /api/status``)
+        and the figures it measures; ``rate_hz`` is the sensor rate the ingest rate is a
+        fraction of."""
         st = self.stats()
-        return {
-            "alive": self.alive,
-            "ready": self.ready.is_set(),
-            "pid": self.pid,
-            "restarts": self.restarts,
-            "crashes": list(self.crashes),
-            "last_errors": list(self.errors)[-3:],
-            "config_version": self.config.version,
-            "applied_version": self.applied_version,
-            "heartbeat_age_s": None if math.isinf(st["heartbeat_age_s"]) else st["heartbeat_age_s"],
-        }
+        age = st["heartbeat_age_s"]
+        steps_per_s = self._ingest.rate()
+        return WorkerReport(
+            status=WorkerStatus(
+                alive=self.alive,
+                ready=self.ready.is_set(),
+                pid=self.pid,
+                restarts=self.restarts,
+                crashes=list(self.crashes),
+                last_errors=list(self.errors)[-3:],
+                config_version=self.config.version,
+                applied_version=self.applied_version,
+                heartbeat_age_s=None if math.isinf(age) else age,
+                steps_per_s=steps_per_s,
+                real_time_factor=steps_per_s / rate_hz if rate_hz else 0.0,
+                frames_out=int(st.get("frames_out", 0)),
+                gaps=int(st.get("gaps", 0)),
+            ),
+            latency_ms=float(st.get("latency_ms", 0.0)),
+            compute_ms=float(st.get("compute_ms", 0.0)),
+            ring_lost_frames=int(st.get("ring_lost_frames", 0)),
+            skipped_frames=int(st.get("worker_skip_frames", 0)),
+        )

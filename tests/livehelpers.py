@@ -16,7 +16,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import httpx
 
@@ -64,6 +64,33 @@ def wait_until(
             text = what() if callable(what) else what
             raise AssertionError(f"timed out after {timeout} s waiting for {text}")
         time.sleep(interval)
+
+
+def read_blocks(
+    src: Any,
+    k: int,
+    timeout: float,
+    *,
+    check: Callable[[Any], None] | None = None,
+    block_timeout: float = 0.5,
+) -> list[Any]:
+    """``k`` blocks from ``src`` (a :class:`driver.source.Source`), each passed to ``check``
+    first; AssertionError with the source's counters if they do not come within ``timeout`` s.
+
+    Each read waits for its block itself (``block_timeout``), so the polling never sleeps."""
+    out: list[Any] = []
+
+    def got_all() -> bool:
+        b = src.read_block(block_timeout)
+        if b is not None:
+            if check is not None:
+                check(b)
+            out.append(b)
+        return len(out) >= k
+
+    wait_until(got_all, timeout, lambda: f"{k} blocks (got {len(out)}; counters "
+               f"{src.counters()})", interval=0)
+    return out
 
 
 def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:

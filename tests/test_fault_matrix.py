@@ -13,7 +13,6 @@ import os
 import shutil
 import signal
 import socket
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -142,7 +141,11 @@ def row_slow_clients(c: Ctx) -> None:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
             sock.sendall(f"GET /stream.mjpg HTTP/1.1\r\nHost: 127.0.0.1:{c.s.port}\r\n\r\n"
                          .encode())
-        time.sleep(3)  # they read nothing
+        # they read nothing: once their socket buffers are full, the hub drops frames for
+        # them (only the six stuck clients are connected now, so these drops are theirs)
+        c.s.wait_for(lambda x: x["clients"] >= 6
+                     and sum(k["dropped"] for k in x["drops"]["per_client"]) > 0,
+                     timeout=60, what="the stuck clients to be dropped to")
         assert len(ws_frames(c.s, 10, timeout=60)) == 10  # a reading client is not slowed
         st = c.s.status()
         assert st["clients"] >= 6
@@ -200,14 +203,14 @@ def test_worker_memory_returns_after_a_large_window_is_reverted(ctx):
     s = ctx.s
 
     def settle(window: int) -> float:
+        """Apply ``window``, see frames made with it, and return the worker's steady RSS."""
         r = s.put("/api/config", json={"method": "tfp", "params": {"window": window}})
         assert r.status_code in (200, 202), r.text
         s.wait_for(lambda x: x["worker"]["applied_version"] == x["worker"]["config_version"]
                    and x["params"].get("window") == window, timeout=120,
                    what=f"window={window} to be applied")
         ws_frames(s, 3, timeout=120, method="tfp")
-        time.sleep(1.0)
-        return _rss_mb(s.status()["worker"]["pid"])
+        return _steady_rss_mb(s.status()["worker"]["pid"])
 
     base = settle(160)
     big = settle(30_000)  # 0.75 s of steps: a buffer of about 750 MB at 400 x 250
@@ -215,3 +218,18 @@ def test_worker_memory_returns_after_a_large_window_is_reverted(ctx):
     print(f"worker RSS: {base:.0f} MB, window=30000 {big:.0f} MB, reverted {back:.0f} MB")
     assert big > base + 300, (base, big)  # the window really took memory
     assert back < base + 100, (base, big, back)  # and gave it back
+
+
+def _steady_rss_mb(pid: int, timeout: float = 30.0) -> float:
+    """The RSS of ``pid`` once it stopped moving (two reads 0.25 s apart within 2 %): a
+    buffer is allocated or given back a moment after the frames that show a new window."""
+    last: list[float] = []
+
+    def steady() -> float | None:
+        now = _rss_mb(pid)
+        prev = last[-1] if last else None
+        last.append(now)
+        return now if prev is not None and abs(now - prev) <= 0.02 * prev else None
+
+    return wait_until(steady, timeout, lambda: f"a steady RSS of {pid} (reads: {last[-8:]})",
+                      interval=0.25)

@@ -78,12 +78,13 @@ def _set_sidecar(dat: Path, **changes) -> None:
 def test_truncated_under_a_running_replay_ends_it_cleanly(tmp_path):
     dat = _pattern(tmp_path / "scene.dat", 4000)
     r = _isolated(f"""
-        import json, os, threading, time
+        import json, os, threading
         from driver.source import ReplayControl, SourceEnded
         from replay.device import ReplayDevice
         dev = ReplayDevice({str(dat)!r}, mode="paced", speed=20.0, loop=True, block_frames=64)
         dev.open()
         out = {{"blocks": 0, "ended": None}}
+        playing = threading.Event()  # set once 5 blocks went through: the replay is running
         def pump():
             # what the acquisition thread does: read, touch every byte (as the ring copy does)
             while True:
@@ -95,10 +96,11 @@ def test_truncated_under_a_running_replay_ends_it_cleanly(tmp_path):
                 if b is not None:
                     int(b.data.sum())
                     out["blocks"] += 1
+                    if out["blocks"] >= 5:
+                        playing.set()
         t = threading.Thread(target=pump, daemon=True)
         t.start()
-        while out["blocks"] < 5:
-            time.sleep(0.005)
+        assert playing.wait(60), f"the replay did not start: {{out}}"
         os.truncate({str(dat)!r}, 64 * 80)  # keep 80 of 4000 frames: the replay is past them
         t.join(30)
         out.update(alive=t.is_alive(), state=dev.state.value, last_error=dev.last_error,
@@ -219,7 +221,7 @@ def test_one_frame_loop_does_not_spin_a_real_clock(tmp_path):
     dev = ReplayDevice(dat, mode="paced", loop=True, block_frames=256)
     dev.open()
     c0, t0, n = time.thread_time(), time.monotonic(), 0
-    while time.monotonic() - t0 < 1.0:
+    while time.monotonic() - t0 < 1.0:  # a measurement over one second of wall time, no wait
         b = dev.read_block(0.2)
         if b is not None:
             n += 1

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import json
 import subprocess
-import time
 import zipfile
 from pathlib import Path
 
 import httpx
 import pytest
-from livehelpers import LiveServer, write_pattern
+from livehelpers import LiveServer, write_pattern, ws_frames
 from wheelenv import REPO, clean_env, project_version, run_cli
 
 pytestmark = [pytest.mark.packaging, pytest.mark.timeout(1200)]
@@ -112,8 +111,6 @@ def test_base_install_is_the_library_and_offline_cli(base_install, tmp_path):
 
 
 def test_live_install_serves_viewer_ws_and_mjpeg(live_install, tmp_path):
-    from service.hub import decode_ws_message
-
     bindir = live_install
     r = run_cli(bindir, ["--version"], tmp_path)
     assert r.stdout.strip() == f"cfsr {project_version()}"
@@ -127,13 +124,7 @@ def test_live_install_serves_viewer_ws_and_mjpeg(live_install, tmp_path):
         assert page.status_code == 200 and "<title>CFSR live viewer</title>" in page.text
         assert httpx.get(s.url + "/app.js", timeout=30).status_code == 200
         # binary frames over the WebSocket
-        with s.ws_connect() as ws:
-            frames = []
-            end = time.monotonic() + 120
-            while len(frames) < 2 and time.monotonic() < end:
-                msg = ws.recv(timeout=60)
-                assert isinstance(msg, bytes)
-                frames.append(decode_ws_message(msg))
+        frames = ws_frames(s, 2, timeout=120)
         assert len(frames) == 2 and frames[0]["image"].shape == (250, 400)
         # JPEGs over MJPEG
         data = b""

@@ -50,9 +50,23 @@ def test_health_status_and_openapi(server):
     spec = server.get("/openapi.json").json()
     for path in ("/healthz", "/api/status", "/api/config", "/api/sources", "/api/source",
                  "/api/replay", "/api/replay/seek", "/api/replay/step", "/api/record",
-                 "/api/frame.png", "/stream.mjpg", "/metrics", "/api/methods"):
+                 "/api/frame.png", "/stream.mjpg", "/metrics", "/api/methods", "/api/limits"):
         assert path in spec["paths"], path
     assert "StatusModel" in spec["components"]["schemas"]
+
+
+def test_limits_are_the_ones_the_api_enforces(server):
+    """``GET /api/limits`` (what the viewer's form takes its bounds from) says the rules of
+    :mod:`service.settings`, and the API refuses what lies outside them."""
+    from service.settings import MAX_FPS_RANGE, RECORDING_NAME_PATTERN
+
+    lim = server.get("/api/limits").json()
+    assert lim == {"max_fps": {"minimum": MAX_FPS_RANGE[0], "maximum": MAX_FPS_RANGE[1]},
+                   "recording_name_pattern": RECORDING_NAME_PATTERN}
+    over = lim["max_fps"]["maximum"] * 2
+    assert server.put("/api/config", json={"max_fps": over}).status_code == 422
+    r = server.post("/api/record", json={"action": "start", "name": "../escape"})
+    assert r.status_code == 422 and "pattern" in r.text
 
 
 def test_websocket_frames_change(server):

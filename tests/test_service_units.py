@@ -93,16 +93,18 @@ def test_hub_run_logs_a_failure_and_goes_on(caplog):
 
     class Broken:
         calls = 0
+        third = asyncio.Event()  # the handshake: the loop went on after two failures
 
         def read(self, since=None):
             Broken.calls += 1
+            if Broken.calls >= 3:
+                Broken.third.set()
             raise OSError("slot unmapped")
 
     async def go():
         hub = FrameHub(Broken(), poll_s=0.001)  # type: ignore[arg-type]
         task = asyncio.create_task(hub.run())
-        while Broken.calls < 3:
-            await asyncio.sleep(0.01)
+        await asyncio.wait_for(Broken.third.wait(), 30)
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import time
 from pathlib import Path
 
 import pytest
@@ -65,15 +64,27 @@ def _wait(page, js, timeout=60_000, arg=None):
     page.wait_for_function(js, arg=arg, timeout=timeout)
 
 
-def _stable_hash(page, tries=40):
-    last = page.evaluate(HASH_JS)
-    for _ in range(tries):
-        time.sleep(0.25)
-        h = page.evaluate(HASH_JS)
-        if h == last:
-            return h
-        last = h
-    raise AssertionError("the picture never settled")
+# True (as {hash}) once the picture's hash is the same at two polls in a row: called by
+# Playwright's wait_for_function every STABLE_POLL_MS, the page keeps the previous hash
+STABLE_JS = "() => {\n  const h = (" + HASH_JS + """)();
+  const prev = window.__cfsrLastHash;
+  window.__cfsrLastHash = h;
+  return prev === h ? { hash: h } : false;
+}"""
+STABLE_POLL_MS = 250
+
+
+def _stable_hash(page, timeout=10_000):
+    """The picture's hash once it stopped changing (the replay is paused: frames of the same
+    data still arrive, and a new method's first frames may still be on their way)."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    page.evaluate("() => { window.__cfsrLastHash = undefined; }")
+    try:
+        h = page.wait_for_function(STABLE_JS, polling=STABLE_POLL_MS, timeout=timeout)
+    except PlaywrightTimeout:
+        raise AssertionError("the picture never settled") from None
+    return h.json_value()["hash"]
 
 
 def _switch_method(page, name):
@@ -109,6 +120,20 @@ def test_viewer_in_chromium(browser, server, tmp_path):
     assert float(page.inner_text("#fig-input").replace(",", "")) > 0
     assert float(page.inner_text("#fig-rtf")) > 0
     assert page.inner_text("#drop-ring") != "-"
+
+    # the form's bounds come from GET /api/limits (the rules are written once, in the service)
+    from service.settings import MAX_FPS_RANGE
+
+    assert float(page.get_attribute("#max-fps", "max")) == MAX_FPS_RANGE[1]
+    assert float(page.get_attribute("#max-fps", "min")) == MAX_FPS_RANGE[0]
+    valid = "() => document.getElementById('record-name').checkValidity()"
+    page.fill("#record-name", "../escape")
+    assert page.evaluate(valid) is False
+    page.click("#record")
+    assert "not a recording name" in page.inner_text("#record-msg")
+    page.fill("#record-name", "take-1.v2")
+    assert page.evaluate(valid) is True
+    page.fill("#record-name", "")
     page.screenshot(path=str(shots / "viewer-live.png"), full_page=True)
 
     # pause the replay so the picture only changes when we change something
@@ -163,7 +188,8 @@ def test_viewer_in_chromium(browser, server, tmp_path):
     page.click("#play")
     s1 = page.evaluate("window.cfsrViewer.step")
     _wait(page, "(s) => window.cfsrViewer.step > s", arg=s1)
-    time.sleep(1.5)
+    drawn = page.evaluate("window.cfsrViewer.drawn")
+    _wait(page, "(n) => window.cfsrViewer.drawn >= n + 5", arg=drawn)  # a few for the shot
     page.screenshot(path=str(shots / "viewer-heat-mask.png"), full_page=True)
     assert not errors, errors
     page.close()

@@ -6,8 +6,9 @@ import asyncio
 
 from fastapi import APIRouter, Depends, HTTPException, Response
 
+from service.config import ConfigChange
 from service.deps import RuntimeDep, require_token
-from service.models import ConfigModel, ConfigUpdate, MethodInfo, reject_non_finite_json
+from service.models import ConfigModel, ConfigUpdate, Limits, MethodInfo, reject_non_finite_json
 
 router = APIRouter(
     tags=["config"], dependencies=[Depends(require_token), Depends(reject_non_finite_json)]
@@ -20,6 +21,13 @@ async def list_methods() -> list[dict]:
     from cfsr.methods.registry import methods
 
     return list(methods().values())
+
+
+@router.get("/api/limits", response_model=Limits,
+            summary="bounds the API enforces (frame-rate cap, recording names)")
+async def get_limits() -> Limits:
+    """The viewer reads its form bounds here instead of repeating them."""
+    return Limits()
 
 
 @router.get("/api/config", response_model=ConfigModel, summary="current configuration")
@@ -40,13 +48,13 @@ async def get_config(rt: RuntimeDep) -> dict:
 async def put_config(body: ConfigUpdate, rt: RuntimeDep, response: Response) -> dict:
     try:
         # in a thread: it waits (a few seconds at most) for the worker's answer
-        out = await asyncio.to_thread(
-            rt.set_config,
+        change = ConfigChange(
             method=body.method,
             params=body.params,
             display=body.display.model_dump() if body.display else None,
             max_fps=body.max_fps,
         )
+        out = await asyncio.to_thread(rt.set_config, change)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from exc
     if out.get("state") == "pending":

@@ -14,7 +14,7 @@ router = APIRouter(tags=["record"], dependencies=[Depends(require_token)])
 
 
 @router.get("/api/record", response_model=RecordStatus, summary="recording state")
-async def record_status(rt: RuntimeDep) -> dict:
+async def record_status(rt: RuntimeDep) -> RecordStatus:
     return rt.record_status()
 
 
@@ -22,7 +22,7 @@ async def record_status(rt: RuntimeDep) -> dict:
              summary="start or stop recording (DATA_DIR/recordings/NAME.dat + sidecar)",
              responses={409: {"description": "already recording / not recording / exists"},
                         507: {"description": "not enough free space to start"}})
-async def record(body: RecordRequest, rt: RuntimeDep) -> dict:
+async def record(body: RecordRequest, rt: RuntimeDep) -> RecordStatus:
     try:
         if body.action == "start":
             return await asyncio.to_thread(

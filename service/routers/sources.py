@@ -36,16 +36,16 @@ async def list_sources(rt: RuntimeDep) -> list[dict]:
 @router.put("/api/source", response_model=SourceStatus, summary="switch the live source",
             responses={404: {"description": "id not in GET /api/sources"},
                        422: {"description": "the source could not be opened"}})
-async def put_source(body: SourceSelect, rt: RuntimeDep) -> dict:
+async def put_source(body: SourceSelect, rt: RuntimeDep) -> SourceStatus:
     try:
         d = await asyncio.to_thread(rt.switch_source, body.id)
     except KeyError:
         raise HTTPException(404, f"no source with id {body.id!r}; see GET /api/sources") from None
     except (ValueError, OSError, SourceError) as exc:
         raise HTTPException(422, f"cannot open {body.id!r}: {exc}") from exc
-    st = rt.status()["source"]
-    st.update({k: d[k] for k in ("state", "capabilities") if k in d})
-    return st
+    # the state and capabilities as the switch left them (the source may move on at once)
+    st = rt.source_report().status
+    return st.model_copy(update={k: d[k] for k in ("state", "capabilities") if k in d})
 
 
 def _replay(rt: Runtime):

@@ -11,9 +11,7 @@ router = APIRouter(tags=["status"], dependencies=[Depends(require_token)])
 
 
 @router.get("/api/status", response_model=StatusModel, summary="live figures and drop counters")
-async def get_status(
-    rt: RuntimeDep, hub: HubDep
-) -> dict:
+async def get_status(rt: RuntimeDep, hub: HubDep) -> StatusModel:
     """Source, method, input steps/s, real-time factor, output fps, latency, and frames
     dropped at every stage: usb, replay, ring, worker, each client, recorder."""
     return rt.status(hub)
@@ -39,35 +37,35 @@ def make_registry(app):
                 return
             s = rt.status(hub)
             g = GaugeMetricFamily
-            yield g("cfsr_input_steps_per_second", "steps/s entering the ring", value=s[
-                "input_steps_per_s"])
+            yield g("cfsr_input_steps_per_second", "steps/s entering the ring",
+                    value=s.input_steps_per_s)
             yield g("cfsr_real_time_factor", "input rate / sensor rate",
-                    value=s["real_time_factor"])
-            yield g("cfsr_output_fps", "frames/s published by the worker", value=s["output_fps"])
+                    value=s.real_time_factor)
+            yield g("cfsr_output_fps", "frames/s published by the worker", value=s.output_fps)
             yield g("cfsr_latency_ms", "newest spike -> frame published (EMA)",
-                    value=s["latency_ms"])
+                    value=s.latency_ms)
             yield g("cfsr_compute_ms", "reconstruction time per frame (EMA)",
-                    value=s["compute_ms"])
-            yield g("cfsr_clients", "connected viewer clients", value=s["clients"])
+                    value=s.compute_ms)
+            yield g("cfsr_clients", "connected viewer clients", value=s.clients)
             yield g("cfsr_worker_alive", "1 if the worker process runs",
-                    value=float(s["worker"]["alive"]))
+                    value=float(s.worker.alive))
             yield g("cfsr_worker_steps_per_second", "steps/s the worker ingests",
-                    value=s["worker"]["steps_per_s"])
+                    value=s.worker.steps_per_s)
             c = CounterMetricFamily("cfsr_dropped_frames", "frames dropped, by stage",
                                     labels=["stage"])
             for stage in ("usb", "replay", "ring", "worker", "clients", "recorder"):
-                c.add_metric([stage], float(s["drops"][stage]))
+                c.add_metric([stage], float(getattr(s.drops, stage)))
             yield c
             c = CounterMetricFamily("cfsr_frames_published", "frames written into the ring")
-            c.add_metric([], float(s["ring"]["frames_published"]))
+            c.add_metric([], float(s.ring.frames_published))
             yield c
             c = CounterMetricFamily("cfsr_frames_out", "reconstructed frames published")
-            c.add_metric([], float(s["worker"]["frames_out"]))
+            c.add_metric([], float(s.worker.frames_out))
             yield c
             c = CounterMetricFamily("cfsr_worker_restarts", "worker restarts after a crash")
-            c.add_metric([], float(s["worker"]["restarts"]))
+            c.add_metric([], float(s.worker.restarts))
             yield c
-            usb = s["source"]["counters"]
+            usb = s.source.counters
             c = CounterMetricFamily("cfsr_source_events", "source error/recovery events",
                                     labels=["kind"])
             for k in ("timeouts", "stalls", "overflows", "short_blocks", "crc_errors",

@@ -11,7 +11,7 @@
   const state = {
     frames: 0, step: null, method: null, width: 0, height: 0, masks: [], maskPixels: {},
     statusUpdates: 0, lastStatus: null, connected: false, methods: {}, config: null,
-    drawn: 0,
+    drawn: 0, limits: null,
   };
   window.cfsrViewer = state;
 
@@ -226,6 +226,28 @@
       sel.appendChild(o);
     }
   }
+  // ---- limits: the service's own bounds (GET /api/limits), written once on the server -------
+  let recordNameRe = null;
+  async function loadLimits() {
+    const lim = await api("/api/limits");
+    state.limits = lim;
+    $("max-fps").min = lim.max_fps.minimum;
+    $("max-fps").max = lim.max_fps.maximum;
+    recordNameRe = new RegExp(lim.recording_name_pattern);
+    $("record-name").title = "file name, .dat added; must match " + lim.recording_name_pattern;
+    $("max-fps").title = lim.max_fps.minimum + " to " + lim.max_fps.maximum + " frames/s";
+    checkRecordName();
+  }
+  // a custom validity, not the pattern attribute: browsers compile that with the v flag,
+  // which refuses a plain "-" at the end of a character class
+  function checkRecordName() {
+    const el = $("record-name"), v = el.value.trim();
+    el.setCustomValidity(!v || !recordNameRe || recordNameRe.test(v) ? ""
+      : "not a recording name: it must match " + recordNameRe.source);
+    return el.checkValidity();
+  }
+  $("record-name").addEventListener("input", checkRecordName);
+
   async function loadConfig() {
     const c = await api("/api/config");
     state.config = c;
@@ -321,6 +343,7 @@
   $("record").addEventListener("click", async () => {
     try {
       if (!recording) {
+        if (!checkRecordName()) { msg($("record-msg"), $("record-name").validationMessage, true); return; }
         const name = $("record-name").value.trim() || undefined;
         await api("/api/record", { method: "POST", body: { action: "start", name } });
       } else {
@@ -406,7 +429,7 @@
   (async function init() {
     await ensureSession();
     connect();
-    try { await loadMethods(); await loadConfig(); await loadSources(); }
+    try { await loadLimits(); await loadMethods(); await loadConfig(); await loadSources(); }
     catch (e) { msg($("config-msg"), e.message, true); }
     pollStatus();
   })();

@@ -7,6 +7,11 @@ Must itself run under ``umockdev-wrapper``. Usage::
 
 Faults are injected at the given seconds after the camera appears; the model's counters are
 written to ``--state-file`` every 0.2 s so a test can compare them with ``/api/status``.
+
+It imports the project as installed in the interpreter that runs it (``./tasks`` installs it
+in ``.venv``, editable), like every other entry point: run as a script, its own folder and
+not the checkout is first on ``sys.path``, and a path inserted by hand would hide a broken
+install.
 """
 
 from __future__ import annotations
@@ -18,9 +23,6 @@ import sys
 import threading
 import time
 from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO))
 
 
 def main() -> int:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from livehelpers import read_blocks, wait_until
 
 from replay import umockdev_camera as U
 
@@ -68,15 +69,8 @@ def _exact(rec, blk) -> None:
 
 
 def _read(src, k, rec, timeout=10.0):
-    out = []
-    end = time.monotonic() + timeout
-    while len(out) < k and time.monotonic() < end:
-        b = src.read_block(0.5)
-        if b is not None:
-            _exact(rec, b)
-            out.append(b)
-    assert len(out) == k, f"{len(out)} of {k} blocks; counters {src.counters()}"
-    return out
+    """``k`` blocks from ``src``, each checked byte-exact against ``rec``."""
+    return read_blocks(src, k, timeout, check=lambda b: _exact(rec, b))
 
 
 def test_enumeration_and_descriptors(camera):
@@ -153,13 +147,12 @@ def test_paced_40k_frames_per_second_for_5s_without_loss(camera, rec):
 
     th = threading.Thread(target=consume)
     th.start()
-    t0 = time.monotonic()
     acq.start()
-    while src.counters()["frames_delivered"] == 0 and time.monotonic() - t0 < 5:
-        time.sleep(0.01)
+    wait_until(lambda: src.counters()["frames_delivered"] > 0, 5, "the first frames",
+               interval=0.01)
     t1 = time.monotonic()
     f1 = src.counters()["frames_delivered"]
-    time.sleep(5.5)
+    time.sleep(5.5)  # not a wait for a condition: the window the sustained rate is measured over
     t2 = time.monotonic()
     f2 = src.counters()["frames_delivered"]
     acq.stop()
@@ -216,12 +209,16 @@ def test_unplug_then_replug(camera, rec, kind):
     src = _source()
     _read(src, 4, rec)
     camera.model.inject(kind, seconds=0.6)
+    gone = {SourceState.DISCONNECTED, SourceState.BACKOFF}
     seen = set()
-    end = time.monotonic() + 0.5
-    while time.monotonic() < end:
-        src.read_block(0.05)
+
+    def saw_it_gone() -> bool:
+        src.read_block(0.05)  # the read is what notices the unplug
         seen.add(src.state)
-    assert seen & {SourceState.DISCONNECTED, SourceState.BACKOFF}
+        return bool(seen & gone)
+
+    wait_until(saw_it_gone, 5, lambda: f"the source to report the unplug (saw {seen})",
+               interval=0)
     blocks = _read(src, 8, rec)
     c = src.counters()
     assert c["disconnects"] == 1 and c["reconnects"] == 1, c
