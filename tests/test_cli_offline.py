@@ -165,3 +165,32 @@ def test_reconstruct_masks_written_beside_frames(dat, tmp_path):
     _, want = cfsr.reconstruct(s, "csr", [450], return_masks=True, T=200, max_isi=100)
     np.testing.assert_array_equal(mask, want["coarse"][0])
     assert np.asarray(Image.open(out / "t450_mask_coarse.png")).max() in (0, 255)
+
+
+def test_first_frame_notice_says_numba_is_compiling():
+    """A first frame slower than the notice's delay gets one line saying why (numba compiles
+    on a machine's first use); a frame that came out in time gets none."""
+    import threading
+
+    from cfsr.cli._common import first_frame_notice
+
+    class Bar:
+        def __init__(self, n):
+            self.n = n
+            self.lines = []
+            self.wrote = threading.Event()
+
+        def write(self, text, file=None):
+            self.lines.append(text)
+            self.wrote.set()
+
+    slow = Bar(0)
+    with first_frame_notice(slow, "cfsr", after=0.01):
+        assert slow.wrote.wait(10)  # the body outlives the delay: the notice fires
+    assert len(slow.lines) == 1 and "numba compiles" in slow.lines[0]
+    fast = Bar(1)  # a frame already came out when the timer fires
+    with first_frame_notice(fast, "cfsr", after=0.01):
+        assert not fast.wrote.wait(0.2)  # bounded wait for something that must not happen
+    quiet = Bar(0)
+    with first_frame_notice(quiet, "cfsr", after=0.01, enabled=False):
+        assert not quiet.wrote.wait(0.2)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from contextlib import contextmanager
 from typing import Any
 
 
@@ -104,3 +106,40 @@ def open_input(args: argparse.Namespace):
         fliplr=args.fliplr,
         allow_partial=args.allow_partial,
     )
+
+
+def jit_cache_location() -> str:
+    """Where numba keeps the compiled kernels (``NUMBA_CACHE_DIR``, else beside the modules)."""
+    import numba
+
+    return numba.config.CACHE_DIR or "__pycache__ folders beside the installed cfsr modules"
+
+
+@contextmanager
+def first_frame_notice(bar, what: str, *, after: float = 3.0, enabled: bool = True):
+    """While the body runs, say once (on stderr, through ``bar``) that numba is compiling when
+    the first frame has not come out ``after`` seconds in: on a machine's first use the
+    kernels of CSR and CFSR compile for most of a minute, which would otherwise look like a
+    hang. ``bar`` is the tqdm bar whose count says whether a frame came out."""
+    import threading
+
+    done = threading.Event()
+
+    def fire() -> None:
+        if not done.is_set() and bar.n == 0:
+            bar.write(
+                f"{what}: the first frame is still running after {after:g} s: numba compiles "
+                f"the kernels on first use on this machine (cached in {jit_cache_location()}); "
+                "later runs start at once",
+                file=sys.stderr,
+            )
+
+    timer = threading.Timer(after, fire)
+    timer.daemon = True
+    if enabled:
+        timer.start()
+    try:
+        yield
+    finally:
+        done.set()
+        timer.cancel()

@@ -10,7 +10,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from cfsr.cli._common import add_input_arguments, open_input, parse_params, parse_times
+from cfsr.cli._common import (
+    add_input_arguments,
+    first_frame_notice,
+    open_input,
+    parse_params,
+    parse_times,
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -149,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         mininterval=0.5,
     )
-    with bar:
+    with bar, first_frame_notice(bar, m.name, enabled=not args.quiet):
         results = run_batch(tasks, cluster=args.cluster, progress=bar.update)
     n = sum(r["frames"] for r in results)
     if args.masks and not m.masks:
@@ -186,7 +192,7 @@ def _video(args: argparse.Namespace, rec, method: str, times: list[int], params:
             disable=args.quiet or None,
             file=sys.stderr,
             mininterval=0.5,
-        ) as bar:
+        ) as bar, first_frame_notice(bar, method, enabled=not args.quiet):
             for _, out in stream_reconstruct(rec, method, times, params=params, preset=args.preset):
                 if gain is None:
                     # one gain for the whole video, so brightness does not flicker
