@@ -41,6 +41,7 @@ __all__ = [
     "next_spike",
     "range_times",
     "ROW_PAD",
+    "row_or_stored",
     "isi_in_words",
     "count_between",
 ]
@@ -193,6 +194,18 @@ def row_words(packed, geo, lo, hi, y, x0, x1, words):  # pragma: no cover - numb
             for j in range(min(64, 8 * (nbytes - g))):
                 words[8 * g + j, q] = a[j]
     return qa - 8 * b0, xs
+
+
+@njit(cache=True, inline="always")
+def row_or_stored(packed, geo, lo, hi, y, w, store, bases):  # pragma: no cover - numba
+    """Words of image row ``y`` over ``[lo, hi)`` as ``(words, base, step)`` (see
+    :func:`row_words`): ``store[y]`` when ``store`` holds one row per image row (the words a
+    previous whole-frame scan left, ``bases[y]`` their placement), otherwise gathered here."""
+    if store.shape[0] > y and bases.shape[0] > y:
+        return store[y], bases[y, 0], bases[y, 1]
+    words = np.empty((w + ROW_PAD, (hi - lo + 63) >> 6), np.uint64)
+    base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+    return words, base, step
 
 
 @njit(cache=True, inline="always")

@@ -23,22 +23,6 @@ def if_train(rates, phase, n):
     return (np.floor(level) > np.floor(prev)).astype(np.uint8)
 
 
-def brute_isi(times, c, a, b):
-    """The TFI interval rule (Eq. 3) at step c, spikes searched in [a, b), written plainly."""
-    ts = [s for s in times if a <= s < b]
-    before = [s for s in ts if s <= c]
-    after = [s for s in ts if s > c]
-    if before and after:
-        return after[0] - before[-1]
-    if before:
-        p = before[-1]
-        return max(b - p, p - before[-2]) if len(before) > 1 else b - p
-    if after:
-        q = after[0]
-        return max(q - a + 1, after[1] - q) if len(after) > 1 else q - a + 1
-    return b - a + 1
-
-
 def brute_spread(times, c, radius, a, b):
     """(max - min - 1) / mean over the distinct whole intervals (both spikes in [a, b))
     containing a step of c +- radius; 0 with fewer than two."""

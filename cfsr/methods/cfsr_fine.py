@@ -62,6 +62,7 @@ from cfsr._words import (
     prefix_counts,
     prev_spike,
     range_times,
+    row_or_stored,
     row_words,
 )
 from cfsr.methods.atsr import atsr_fuse, atsr_fuse_isi
@@ -378,16 +379,9 @@ def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, 
     h, w = ub.shape
     k_count = ends.shape[0]
     nw = (hi - lo + 63) >> 6
-    stored = store.shape[0] == h
     for y in prange(h):
         big = np.empty((hi - lo) // 64 + 1, np.int64)
-        if stored:
-            words = store[y]
-            base = bases[y, 0]
-            step = bases[y, 1]
-        else:
-            words = np.empty((w + ROW_PAD, nw), np.uint64)
-            base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
         for x in range(w):
             r = base + step * x
             for k in range(k_count):

@@ -35,13 +35,12 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._words import (
-    ROW_PAD,
     PackedWindow,
     count_between,
     next_spike,
     prev_spike,
     range_times,
-    row_words,
+    row_or_stored,
 )
 from cfsr.methods.tfp import span_rate
 
@@ -137,20 +136,12 @@ def _steady_kernel(
     ``bases[y, 0] + bases[y, 1] * x``, steps from ``lo``) when it holds one row per image row,
     as CFSR's history scan leaves it; otherwise gathers the words."""
     h, w = spread.shape
-    nw = (hi - lo + 63) >> 6
     a = max(0, c - m)
     b = min(n, c + m + 1)
     k_spans = spans.shape[0]
-    stored = store.shape[0] == h
     for y in prange(h):
         loc = np.empty(2 * radius + 2, np.int64)
-        if stored:
-            words = store[y]
-            base = bases[y, 0]
-            step = bases[y, 1]
-        else:
-            words = np.empty((w + ROW_PAD, nw), np.uint64)
-            base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
+        words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
         for x in range(w):
             r = base + step * x
             sp, iv = interval_stats(words, r, lo, c, radius, a, b, loc)
