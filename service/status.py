@@ -200,6 +200,11 @@ class WorkerStatus(BaseModel):
     config_version: int
     applied_version: int
     heartbeat_age_s: float | None
+    first_frame_s: float | None = Field(
+        None,
+        description="seconds the first frame under the current config has been computing "
+        "(None: none pending); on a machine's first use it waits on numba's compiler",
+    )
     steps_per_s: float
     real_time_factor: float
     frames_out: int

@@ -74,11 +74,14 @@ class Attach:
 
 @dataclass(frozen=True)
 class Inject:
-    """Test hook: ``crash`` exits like a segfault (status ``code``); ``raise`` raises."""
+    """Test hook: ``crash`` exits like a segfault (status ``code``); ``raise`` raises;
+    ``slow_first`` makes the next first frame under a config take ``seconds`` longer (as a
+    first use's compilation does)."""
 
-    fault: Literal["crash", "raise"]
+    fault: Literal["crash", "raise", "slow_first"]
     code: int = 3
     message: str = "injected worker failure"
+    seconds: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -149,6 +152,8 @@ class _Worker:
         self._last_out_step: int | None = None
         self._next_out = 0.0
         self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
+        self._first_pending = True  # the first frame under the current config is to come
+        self.slow_first = 0.0  # test hook (Inject "slow_first")
 
     def bump(self, name: str, by: float = 1.0) -> None:
         self.st[self.ix[name]] += by
@@ -193,6 +198,7 @@ class _Worker:
             self.rec.set_method(cfg.method)
         self.config = cfg
         self._last_out_step = None
+        self._first_pending = True
         self.put("config_version", cfg.version)
         self.evt_q.put(ConfigAnswer(cfg.version, applied=True))
 
@@ -274,7 +280,14 @@ class _Worker:
         from cfsr.display import to_display
 
         t0 = time.perf_counter()
+        if self._first_pending:
+            self.put("first_frame_since", time.monotonic())
+            if self.slow_first:  # test hook: a first frame that waits as on a compiler
+                time.sleep(self.slow_first)
+                self.slow_first = 0.0
         out = rec.compute(t)
+        self._first_pending = False
+        self.put("first_frame_since", 0.0)
         gain = self.config.gain
         g = float(gain) if gain else _auto_gain(out.rate)
         img = to_display(out.rate, g)
@@ -346,6 +359,8 @@ def worker_main(
                         w.configure(cmd.config)
                     elif isinstance(cmd, Attach):
                         w.attach(cmd.ring_path, cmd.layout)
+                    elif isinstance(cmd, Inject) and cmd.fault == "slow_first":
+                        w.slow_first = cmd.seconds
                     elif isinstance(cmd, Inject) and cmd.fault == "crash":
                         os._exit(cmd.code)  # test hook: die like a segfault would
                     elif isinstance(cmd, Inject):  # test hook: an uncaught Python error
@@ -389,16 +404,26 @@ class WorkerSupervisor:
         :meth:`configure`.
     hang_timeout : float
         Seconds without a heartbeat after which the worker is considered hung and restarted.
+    compile_timeout : float
+        The same while the first frame under a configuration is computing: on a machine's
+        first use that frame waits on numba's compiler for most of a minute (more on a slow
+        machine), and a restart would only start the compilation over.
     """
 
     def __init__(
-        self, slot: FrameSlot, config: WorkerConfig, *, hang_timeout: float = 120.0
+        self,
+        slot: FrameSlot,
+        config: WorkerConfig,
+        *,
+        hang_timeout: float = 120.0,
+        compile_timeout: float = 900.0,
     ) -> None:
         self.slot = slot
         #: the configuration asked for (the newest sent, or the last confirmed after a
         #: rejection): what a restarted worker starts with
         self.config = config
         self.hang_timeout = hang_timeout
+        self.compile_timeout = compile_timeout
         self._ctx = mp.get_context("spawn")
         self._proc: mp.process.BaseProcess | None = None
         self._cmd_q = None
@@ -537,9 +562,10 @@ class WorkerSupervisor:
             self._ring_path, self._layout = ring_path, layout
             self._send(Attach(ring_path, layout))
 
-    def inject(self, fault: Literal["crash", "raise"], **kw: Any) -> None:
-        """Test hooks: ``crash`` (hard exit, ``code=``) or ``raise`` (uncaught Python
-        exception, ``message=``)."""
+    def inject(self, fault: Literal["crash", "raise", "slow_first"], **kw: Any) -> None:
+        """Test hooks: ``crash`` (hard exit, ``code=``), ``raise`` (uncaught Python
+        exception, ``message=``) or ``slow_first`` (the next first frame under a config
+        takes ``seconds=`` longer)."""
         self._send(Inject(fault, **kw))
 
     def _send(self, cmd: Configure | Attach | Inject | Stop) -> None:
@@ -593,12 +619,15 @@ class WorkerSupervisor:
                 if proc is None:
                     continue
                 alive = proc.is_alive()
-                hb = self.slot.stats().get("heartbeat", 0.0)
+                st = self.slot.stats()
+                hb = st.get("heartbeat", 0.0)
+                compiling = st.get("first_frame_since", 0.0) > 0
+                limit = self.compile_timeout if compiling else self.hang_timeout
                 hung = (
                     alive
                     and self.ready.is_set()
                     and hb > 0
-                    and time.monotonic() - hb > self.hang_timeout
+                    and time.monotonic() - hb > limit
                 )
                 if alive and not hung:
                     if time.monotonic() - self._started_at > 30:
@@ -659,6 +688,7 @@ class WorkerSupervisor:
         fraction of."""
         st = self.stats()
         age = st["heartbeat_age_s"]
+        first = st.get("first_frame_since", 0.0)
         steps_per_s = self._ingest.rate()
         return WorkerReport(
             status=WorkerStatus(
@@ -671,6 +701,7 @@ class WorkerSupervisor:
                 config_version=self.config.version,
                 applied_version=self.applied_version,
                 heartbeat_age_s=None if math.isinf(age) else age,
+                first_frame_s=(time.monotonic() - first) if first else None,
                 steps_per_s=steps_per_s,
                 real_time_factor=steps_per_s / rate_hz if rate_hz else 0.0,
                 frames_out=int(st.get("frames_out", 0)),

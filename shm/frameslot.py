@@ -52,6 +52,9 @@ STAT_FIELDS = (
     "latency_ms",  # EMA, arrival of the newest step used -> publish
     "config_version",
     "started",
+    # time.monotonic() when the first frame under the current config began computing, 0 when
+    # none is pending: on a machine's first use that frame waits on numba's compiler
+    "first_frame_since",
 )
 
 

@@ -200,3 +200,37 @@ def test_unconfirmed_config_is_not_replayed_into_a_new_worker(pipeline):
                    interval=0.005)
     assert f.method == "tfp", "no frames of the confirmed method after the restart"
     assert sup.applied_version == sup.config.version
+
+
+def test_a_slow_first_frame_is_reported_and_not_taken_for_a_hang(rec):
+    """The first frame under a config may wait on numba's compiler for most of a minute on a
+    machine's first use: the worker reports how long it has been computing, and the
+    supervisor does not restart it for a silent heartbeat within the compile allowance."""
+    dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=64)
+    dev.open()
+    ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
+    slot = FrameSlot.create(max_pixels=H * W)
+    sup = WorkerSupervisor(slot, _cfg(), hang_timeout=1.0, compile_timeout=60.0)
+    acq = Acquisition(dev, ring)
+    try:
+        sup.start(str(ring.path), rec.layout)
+        assert sup.ready.wait(120), "worker did not start"
+        acq.start()
+        assert _frames(slot, 2)
+        sup.inject("slow_first", seconds=4.0)  # longer than hang_timeout
+        v = sup.configure(_cfg("tfi"))
+        wait_until(
+            lambda: (sup.status(40_000.0).status.first_frame_s or 0) > 1.5,
+            30,
+            "the pending first frame in the status",
+            interval=0.05,
+        )
+        assert _frames(slot, 2, method="tfi"), "no frames after the slow first frame"
+        assert sup.restarts == 0, sup.crashes
+        assert sup.status(40_000.0).status.first_frame_s is None
+        assert sup.applied_version == v
+    finally:
+        acq.stop()
+        sup.stop()
+        ring.close()
+        slot.close()

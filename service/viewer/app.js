@@ -374,7 +374,11 @@
       $("fig-fps").textContent = fmt(s.output_fps, 1);
       $("fig-latency").textContent = fmt(s.latency_ms, 1);
       $("fig-compute").textContent = fmt(s.compute_ms, 1);
-      $("fig-worker").textContent = (s.worker.alive ? "alive" : "down") + ", restarts " + s.worker.restarts;
+      $("fig-worker").textContent = (s.worker.alive ? "alive" : "down") + ", restarts " + s.worker.restarts
+        + (s.worker.first_frame_s > 3
+          ? "; first " + s.method + " frame for " + Math.round(s.worker.first_frame_s)
+            + " s: numba compiles the kernels on first use on this machine (once, cached)"
+          : "");
       setDrop("drop-usb", s.drops.usb); setDrop("drop-replay", s.drops.replay);
       setDrop("drop-ring", s.drops.ring); setDrop("drop-worker", s.drops.worker, true);
       setDrop("drop-clients", s.drops.clients); setDrop("drop-recorder", s.drops.recorder);
