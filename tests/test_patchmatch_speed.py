@@ -2,6 +2,8 @@
 
 * Under a global linear motion, every target's NNF is the exact displacement.
 * The result does not depend on the number of threads, and a crop matches the whole frame.
+* ``nnf_multi`` is the two entry points ``nnf_independent`` / ``nnf_temporal``, picked by
+  ``offsets_steps``.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ import numba
 import numpy as np
 import pytest
 
-from cfsr.methods.patchmatch import nnf_multi, patchmatch_fuse
+from cfsr.methods.patchmatch import nnf_independent, nnf_multi, nnf_temporal, patchmatch_fuse
 
 
 def _texture(h, w, seed=0):
@@ -91,12 +93,12 @@ def test_temporal_schedule_is_thread_independent_and_crop_invariant():
 def block_ssd():
     from numba import njit
 
-    from cfsr.methods.patchmatch import _box6x8_min
+    from cfsr._simd import Lanes, box6x8_min
 
     @njit
     def run(ref, tgt, y, x, ty, tx, cy, cx, bc, boy, box):
         w = ref.shape[1]
-        _box6x8_min(ref, tgt, y * w + x, ty * w + tx, w, cy, cx, bc, boy, box)
+        box6x8_min(ref, tgt, y * w + x, ty * w + tx, w, cy, cx, Lanes(bc, boy, box))
 
     rng = np.random.default_rng(5)
     ref = rng.random((30, 40)).astype(np.float32)
@@ -137,3 +139,22 @@ def test_block_ssd_min_keeps_the_lane_bests(block_ssd):
     np.testing.assert_allclose(bc, np.where(np.arange(8) % 2 == 0, 0.0, want), rtol=1e-5)
     np.testing.assert_array_equal(boy, np.where(np.arange(8) % 2 == 0, -7, 5))
     np.testing.assert_array_equal(box, np.where(np.arange(8) % 2 == 0, 9, 4))
+
+
+def test_nnf_multi_dispatches_to_the_two_entry_points():
+    steps = _steps(count=3)
+    ref, tg = _moving(steps, v=(1 / 3, -1 / 3), seed=6)
+    mask = np.zeros(ref.shape, bool)
+    mask[30:50, 40:70] = True
+    kw = dict(iters=2, max_radius=8, seed=9, origin=(3, 5))
+    for got, want in (
+        (nnf_multi(ref, tg, mask, **kw), nnf_independent(ref, tg, mask, **kw)),
+        (
+            nnf_multi(ref, tg, mask, offsets_steps=steps, band=7, **kw),
+            nnf_temporal(ref, tg, mask, steps, band=7, **kw),
+        ),
+    ):
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="offsets_steps"):
+        nnf_temporal(ref, tg, mask, steps[:-1])

@@ -11,12 +11,12 @@ alternating forward/backward scans that try the offsets of the already-visited l
 (right/down) neighbours (propagation) and random offsets around the current best at radii
 ``max_radius, max_radius/2, ..., 1`` (random search). Only the masked pixels are visited.
 
-Two schedules:
+Two schedules, two entry points (:func:`nnf_multi` picks one from ``offsets_steps``):
 
-* Without ``offsets_steps`` (the original form): every target starts from zero motion and gets
+* :func:`nnf_independent` (the original form): every target starts from zero motion and gets
   the full search, pixel by pixel (the SSD over the patch stops early once it exceeds the
   current best); the targets are independent and run in parallel.
-* With ``offsets_steps`` (each target's signed step from t), the temporal schedule: motion over
+* :func:`nnf_temporal` (each target's signed step from t), the temporal schedule: motion over
   these short spans is smooth, so the targets run by increasing ``|step|`` and each starts from
   offsets *predicted* from the NNFs already found - the nearer target on the same side scaled by
   the step ratio (linear motion), the mirror target negated, and the quadratic through the
@@ -37,8 +37,9 @@ Two schedules:
   each other's results and overlap in the CPU; 0.05 dB either way on disk/fan/car). For the
   6 x 6 patch the eight SSDs of a block share their rows: the squared differences of the 6 rows
   are summed per column over 16 columns with 8-wide vectors, then box-summed over 6 columns and
-  folded into the block's per-lane bests with a vector compare-and-select (:func:`_box6x8_min`:
-  no early exit, no per-pixel branches); other patch sizes use the same per-column sums in
+  folded into the block's per-lane bests with a vector compare-and-select
+  (:func:`cfsr._simd.box6x8_min`, LLVM IR, or its pure-numba twin when ``CFSR_SIMD=0``: no
+  early exit, no per-pixel branches); other patch sizes use the same per-column sums in
   scalar code, and offsets that leave the frame for some pixel of the block fall back to
   clamped per-pixel SSDs (no software prefetch: the hardware prefetcher follows these rows, and
   explicit prefetches of every candidate's rows cost 10-15 % of the search). On the simulated
@@ -58,29 +59,112 @@ quantisation noise. The averaged values are the raw TFI rates at the matched pos
 References
 ----------
 The CFSR paper (coarse-to-fine spike reconstruction), fine stage: patch search over the TFI
-frames t +- 5i and averaging of the matches (Eq. 3-14 as read in ``DESIGN.md`` section 3); the
-temporal schedule above is ours, not the paper's.
+frames t +- 5i and averaging of the matches (Eq. 3-14 as read in ``docs/methods.md``, section
+"CFSR: the fine stage", step 5, which also gives the settings CFSR uses); the temporal schedule
+above is ours, not the paper's.
 C. Barnes, E. Shechtman, A. Finkelstein, D. B. Goldman, "PatchMatch: a randomized
 correspondence algorithm for structural image editing", ACM TOG 28(3), 2009.
 """
 
 from __future__ import annotations
 
-import platform
+from typing import NamedTuple
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, prange, types
-from numba.extending import intrinsic
+from numba import njit, prange
 
+from cfsr import _simd
+from cfsr._simd import LANES, READ_COLS, Lanes, box6x8_update
 from cfsr._splitmix import GOLDEN, mix64
 
-_X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
+__all__ = [
+    "PATCH",
+    "ITERS",
+    "MAX_RADIUS",
+    "NEAR_RADIUS",
+    "NEAR_ITERS",
+    "BAND",
+    "BLOCK",
+    "nnf_independent",
+    "nnf_temporal",
+    "nnf_multi",
+    "fuse_matches",
+    "patchmatch_fuse",
+]
 
-__all__ = ["nnf_multi", "fuse_matches", "patchmatch_fuse"]
+#: Default patch side (pixels): the paper's 6 x 6 patch (rows/columns -2..+3 of the pixel).
+PATCH = 6
+#: Default scans of a full search (alternating direction).
+ITERS = 3
+#: Default largest random-search radius of a full search (pixels); halved down to 1.
+MAX_RADIUS = 16
+#: Default radius and scans of a predicted target's local search (temporal schedule).
+NEAR_RADIUS = 2
+NEAR_ITERS = 1
+#: Default band height (full-frame rows) of the temporal schedule's parallel work.
+BAND = 16
+#: Block width (full-frame columns) of the temporal schedule: one vector lane per column.
+BLOCK = LANES
 
-# right-hand padding columns beyond the patch's for the block search (16-column reads)
-_EXTRA = 10
+# right-hand padding columns beyond the patch's for the block search (its vector kernel reads
+# READ_COLS columns from a block start inside the frame)
+_EXTRA = READ_COLS - _simd.PATCH
+# the full-frame key of a pixel or block is row * _ROW_KEY + column (or 8-column cell)
+_ROW_KEY = 1 << 20
+# the draw of scan ``it`` at radius ``r`` is keyed ``it * _SCAN_KEY + r`` (radii below it)
+_SCAN_KEY = 64
+# room for a block's candidate offsets (at most 6 predictions, BLOCK + 1 neighbours or BLOCK
+# distinct bests at a time)
+_MAX_CANDIDATES = 64
+# a target's offsets are predicted up to _PREDICTIONS ways, each from up to _SOURCES earlier
+# targets (same side scaled, mirror negated; quadratic through a pair)
+_PREDICTIONS = 3
+_SOURCES = 2
+# a predicted target's local search draws around this many of a block's distinct bests
+_NEAR_SEEDS = 2
+# no offset yet: a sentinel no prediction equals
+_NO_OFFSET = -(1 << 40)
+# pixels per parallel chunk of the fusion
+_FUSE_CHUNK = 1024
+
+
+class _Pixels(NamedTuple):
+    """The masked pixels, row-major."""
+
+    ys: np.ndarray  #: int64 (M,): rows
+    xs: np.ndarray  #: int64 (M,): columns
+    index: np.ndarray  #: int64 (H, W): each pixel's position in ys/xs, -1 if unmasked
+    keys: np.ndarray  #: int64 (M,): full-frame keys (seed the independent search's draws)
+
+
+class _Blocks(NamedTuple):
+    """The temporal schedule's blocks (masked pixels of one row and one BLOCK-column cell of
+    the full frame) and bands (blocks of ``band`` full-frame rows)."""
+
+    start: np.ndarray  #: int64 (B + 1,): first pixel of each block, then M
+    keys: np.ndarray  #: int64 (B,): full-frame keys (seed the block's draws)
+    bands: np.ndarray  #: int64 (nbands + 1,): first block of each band, then B
+
+
+class _Plan(NamedTuple):
+    """Per target: order of search, predictors, random-search radius and scans."""
+
+    order: np.ndarray  #: int64 (N,): targets in the order they are searched
+    #: int64 (N, _PREDICTIONS, _SOURCES): the earlier targets each prediction combines (-1: none)
+    src: np.ndarray
+    wt: np.ndarray  #: float64 (N, _PREDICTIONS, _SOURCES): their weights
+    radius: np.ndarray  #: int64 (N,): largest random-search radius
+    scans: np.ndarray  #: int64 (N,): scans
+
+
+class _Search(NamedTuple):
+    """Settings shared by the kernels."""
+
+    patch: int  #: patch side
+    seed: np.uint64  #: seed of the counter-based draws
+    #: the 6 x 6 block search's kernel (:func:`cfsr._simd.choice`): True, the LLVM intrinsic;
+    #: None, its numba twin (another type: a kernel compiled and cached for each)
+    simd: bool | None
 
 
 @njit(cache=True, inline="always")
@@ -126,10 +210,10 @@ def _ssd(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
 def _ssd6(ref, tgt, y, x, ty, tx, limit):  # pragma: no cover - numba
     """:func:`_ssd` for the default 6 x 6 patch (constant bounds: the loops unroll)."""
     s = 0.0
-    for dy in range(6):
+    for dy in range(_simd.PATCH):
         rr = ref[y + dy]
         qr = tgt[ty + dy]
-        for dx in range(6):
+        for dx in range(_simd.PATCH):
             d = rr[x + dx] - qr[tx + dx]
             s += d * d
         if s > limit:
@@ -139,7 +223,7 @@ def _ssd6(ref, tgt, y, x, ty, tx, limit):  # pragma: no cover - numba
 
 @njit(cache=True, inline="always")
 def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
-    if patch == 6:
+    if patch == _simd.PATCH:
         return _ssd6(ref, tgt, y, x, ty, tx, limit)
     return _ssd(ref, tgt, y, x, ty, tx, patch, limit)
 
@@ -166,14 +250,20 @@ def _pad(img: np.ndarray, patch: int, extra: int = 0) -> np.ndarray:
 
 
 @njit(parallel=True, cache=True)
-def _nnf_kernel(ref, targets, ys, xs, keys, index, patch, iters, max_r, seed, off, cost):
+def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
     # pragma: no cover - numba
+    """Independent full searches, one target per thread (see :func:`nnf_independent`)."""
+    ys, xs, index, keys = pixels
+    patch = search.patch
+    seed = search.seed
     n_t = targets.shape[0]
     h = targets.shape[1] - patch + 1
     w = targets.shape[2] - patch + 1
     m = ys.shape[0]
     for i in prange(n_t):
         tgt = targets[i]
+        iters = plan.scans[i]
+        max_r = plan.radius[i]
         for j in range(m):
             off[i, j, 0] = 0
             off[i, j, 1] = 0
@@ -211,7 +301,7 @@ def _nnf_kernel(ref, targets, ys, xs, keys, index, patch, iters, max_r, seed, of
                 # random search around the current best at halving radii
                 r = max_r
                 while r >= 1:
-                    ry, rx = _rand2(seed, i, keys[j], it * 64 + r, r)
+                    ry, rx = _rand2(seed, i, keys[j], it * _SCAN_KEY + r, r)
                     ty = _clamp(y + by + ry, 0, h - 1)
                     tx = _clamp(x + bx + rx, 0, w - 1)
                     if ty - y != by or tx - x != bx:
@@ -227,92 +317,6 @@ def _nnf_kernel(ref, targets, ys, xs, keys, index, patch, iters, max_r, seed, of
     return off, cost
 
 
-def _box6x8_sums(context, builder, rty, tty, ra, ta, rb_, tb_, st_):
-    """IR of the SSDs of eight horizontally adjacent 6 x 6 patches, one ``<8 x float>`` value
-    (AVX-width vectors, no early exit).
-
-    The patches start at flat positions ``rb + k`` and ``tb + k`` (k = 0..7) of the
-    C-contiguous float32 ``ref``/``tgt`` with row length ``stride``, reading 16 columns per
-    row: squared differences summed over the 6 rows per column, then 6-column box sums.
-    """
-    i64 = ir.IntType(64)
-    rp = context.make_array(rty)(context, builder, ra).data
-    tp = context.make_array(tty)(context, builder, ta).data
-    v8 = ir.VectorType(ir.FloatType(), 8)
-
-    def load(p, idx):
-        return builder.load(builder.bitcast(builder.gep(p, [idx]), v8.as_pointer()), align=4)
-
-    lo = hi = None
-    eight = ir.Constant(i64, 8)
-    for r in range(6):
-        rr = builder.add(rb_, builder.mul(st_, ir.Constant(i64, r)))
-        tr = builder.add(tb_, builder.mul(st_, ir.Constant(i64, r)))
-        d0 = builder.fsub(load(rp, rr), load(tp, tr))
-        d1 = builder.fsub(load(rp, builder.add(rr, eight)), load(tp, builder.add(tr, eight)))
-        q0 = builder.fmul(d0, d0)
-        q1 = builder.fmul(d1, d1)
-        lo = q0 if lo is None else builder.fadd(lo, q0)
-        hi = q1 if hi is None else builder.fadd(hi, q1)
-    s = lo
-    for j in range(1, 6):
-        mask = ir.Constant(ir.VectorType(ir.IntType(32), 8), list(range(j, j + 8)))
-        s = builder.fadd(s, builder.shuffle_vector(lo, hi, mask))
-    return s
-
-
-@intrinsic
-def _box6x8_min(typingctx, ref, tgt, rb, tb, stride, cy, cx, bc, boy, box):
-    """The eight SSDs of :func:`_box6x8_sums` folded into the lanes' running bests, without
-    branches.
-
-    ``bc`` (float32), ``boy`` and ``box`` (int32) hold 8 lanes each: where the new SSD is
-    below ``bc`` (strictly, as ``c < best``), ``bc`` takes it and ``boy``/``box`` take
-    ``cy``/``cx``.
-    """
-    sig = types.void(ref, tgt, types.int64, types.int64, types.int64, cy, cx, bc, boy, box)
-
-    def codegen(context, builder, signature, args):
-        ra, ta, rb_, tb_, st_, cy_, cx_, ba, ya, xa = args
-        rty, tty, rbt, tbt, stt, cyt, cxt, bty, yty, xty = signature.args
-        rb_ = context.cast(builder, rb_, rbt, types.int64)
-        tb_ = context.cast(builder, tb_, tbt, types.int64)
-        st_ = context.cast(builder, st_, stt, types.int64)
-        s = _box6x8_sums(context, builder, rty, tty, ra, ta, rb_, tb_, st_)
-        i32 = ir.IntType(32)
-        vi = ir.VectorType(i32, 8)
-        bp = builder.bitcast(
-            context.make_array(bty)(context, builder, ba).data, s.type.as_pointer()
-        )
-        yp = builder.bitcast(context.make_array(yty)(context, builder, ya).data, vi.as_pointer())
-        xp = builder.bitcast(context.make_array(xty)(context, builder, xa).data, vi.as_pointer())
-
-        def load(p):
-            # the loaded value passes an empty inline asm, so the backend does not fold the
-            # select-and-store into a masked store (microcoded and slow on AMD Zen)
-            v = builder.load(p, align=4)
-            if not _X86:  # the "x" (SSE/AVX register) constraint exists only there
-                return v
-            return builder.asm(ir.FunctionType(v.type, [v.type]), "", "=x,0", [v], False)
-
-        old = load(bp)
-        m = builder.fcmp_ordered("<", s, old)
-        builder.store(builder.select(m, s, old), bp, align=4)
-
-        def splat(v, t):
-            v = builder.trunc(context.cast(builder, v, t, types.int64), i32)
-            u = builder.insert_element(ir.Constant(vi, ir.Undefined), v, ir.Constant(i32, 0))
-            return builder.shuffle_vector(
-                u, ir.Constant(vi, ir.Undefined), ir.Constant(vi, [0] * 8)
-            )
-
-        builder.store(builder.select(m, splat(cy_, cyt), load(yp)), yp, align=4)
-        builder.store(builder.select(m, splat(cx_, cxt), load(xp)), xp, align=4)
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
 @njit(cache=True, inline="always")
 def _add_cand(cand, nc, cy, cx):  # pragma: no cover - numba
     """Append (cy, cx) to the first ``nc`` rows of ``cand`` unless already there."""
@@ -325,25 +329,31 @@ def _add_cand(cand, nc, cy, cx):  # pragma: no cover - numba
 
 
 @njit(cache=True, inline="always")
-def _eval_block(ref, tgt, xb, xl, y, cy, cx, h, w, patch, cs, boy, box, bc):
-    # pragma: no cover - numba
-    """Try offset (cy, cx) for the block at columns ``xb .. xl`` of row ``y`` (at most 8 apart).
+def _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search):  # pragma: no cover - numba
+    """Try offset (cy, cx) for the block at columns ``xb .. xl`` of row ``y`` (at most
+    ``BLOCK`` apart).
 
-    The block's pixels keep their bests in lanes ``x - xb`` of ``bc`` (SSD) and ``boy``/``box``
-    (offset); lanes of unmasked columns are updated too and never read. Inside the frame the
-    block shares its rows: the squared differences of the ``patch`` rows are summed per
-    column once (``8 + patch - 1`` columns), and each lane's SSD is the sum of its ``patch``
-    columns. Where the offset leaves the frame for some pixel, each lane is clamped and
-    evaluated on its own, as in the scalar search.
+    The block's pixels keep their bests in lane ``x - xb`` of ``lanes`` (SSD and offset);
+    lanes of unmasked columns are updated too and never read. Inside the frame the block
+    shares its rows: the squared differences of the ``patch`` rows are summed per column once
+    (``BLOCK + patch - 1`` columns, scratch ``cs``), and each lane's SSD is the sum of its
+    ``patch`` columns. Where the offset leaves the frame for some pixel, each lane is clamped
+    and evaluated on its own, as in the scalar search.
     """
+    patch = search.patch
+    h = tgt.shape[0] - patch + 1
+    w = tgt.shape[1] - (patch - 1) - _EXTRA
     ty = y + cy
     if ty >= 0 and ty < h and xb + cx >= 0 and xl + cx < w:
-        if patch == 6:
+        if patch == _simd.PATCH:
             stride = ref.shape[1]
-            _box6x8_min(
-                ref, tgt, y * stride + xb, ty * stride + xb + cx, stride, cy, cx, bc, boy, box
-            )
+            rb = y * stride + xb
+            tb = ty * stride + xb + cx
+            box6x8_update(search.simd, ref, tgt, rb, tb, stride, cy, cx, lanes, cs)
         else:
+            # ``lanes`` is unpacked only off the hot path: unpacking it on every call costs
+            # reference counting that made the whole search 1.5x slower
+            bc, boy, box = lanes
             nw = xl - xb + patch
             for c in range(nw):
                 cs[c] = 0.0
@@ -362,6 +372,7 @@ def _eval_block(ref, tgt, xb, xl, y, cy, cx, h, w, patch, cs, boy, box, bc):
                     boy[o] = cy
                     box[o] = cx
     else:
+        bc, boy, box = lanes
         qy = _clamp(y + cy, 0, h - 1)
         for o in range(xl - xb + 1):
             x = xb + o
@@ -374,25 +385,14 @@ def _eval_block(ref, tgt, xb, xl, y, cy, cx, h, w, patch, cs, boy, box, bc):
 
 
 @njit(parallel=True, cache=True)
-def _nnf_blocks(
-    ref,
-    targets,
-    ys,
-    xs,
-    bkeys,
-    blocks,
-    index,
-    bands,
-    order,
-    src,
-    wt,
-    radius,
-    scans,
-    patch,
-    seed,
-    off,
-    cost,
-):  # pragma: no cover - numba
+def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
+    # pragma: no cover - numba
+    """The temporal schedule by bands of blocks (see :func:`nnf_temporal`)."""
+    ys, xs, index, _ = pixels
+    starts, bkeys, bands = blocks
+    order, src, wt, radius, scans = plan
+    patch = search.patch
+    seed = search.seed
     h = targets.shape[1] - patch + 1
     w = targets.shape[2] - (patch - 1) - _EXTRA
     n_c = src.shape[1]
@@ -402,14 +402,15 @@ def _nnf_blocks(
     for b in prange(bands.shape[0] - 1):
         q0 = bands[b]
         q1 = bands[b + 1]
-        j0 = blocks[q0]
-        j1 = blocks[q1]
-        cs = np.empty(16 + patch, np.float32)
-        cand = np.empty((64, 2), np.int64)
+        j0 = starts[q0]
+        j1 = starts[q1]
+        cs = np.empty(BLOCK + patch, np.float32)
+        cand = np.empty((_MAX_CANDIDATES, 2), np.int64)
         # the current block's bests by lane (column - first column of the block)
-        bc = np.empty(8, np.float32)
-        boy = np.zeros(8, np.int32)
-        box = np.zeros(8, np.int32)
+        bc = np.empty(BLOCK, np.float32)
+        boy = np.zeros(BLOCK, np.int32)
+        box = np.zeros(BLOCK, np.int32)
+        lanes = Lanes(bc, boy, box)
         for o in range(order.shape[0]):
             i = order[o]
             tgt = targets[i]
@@ -424,12 +425,12 @@ def _nnf_blocks(
                 d = -1 if fwd else 1
                 for qq in range(q0, q1):
                     q = qq if fwd else q0 + q1 - 1 - qq
-                    p0 = blocks[q]
-                    p1 = blocks[q + 1]
+                    p0 = starts[q]
+                    p1 = starts[q + 1]
                     y = ys[p0]
                     xb = xs[p0]
                     xl = xs[p1 - 1]
-                    for k in range(8):
+                    for k in range(BLOCK):
                         bc[k] = np.inf
                     for k in range(p0, p1):
                         o = xs[k] - xb
@@ -440,10 +441,11 @@ def _nnf_blocks(
                     if it == 0:
                         if predicted:
                             # the predicted offsets of the block's two end pixels: motion is
-                            # smooth across 8 columns, so the ends bracket the pixels between
-                            # them, and propagation and the local search cover the rest (every
-                            # pixel's own prediction: 1.4x the work for the same PSNR within
-                            # 0.04 dB on disk/fan/car); ends whose sources match predict alike
+                            # smooth across BLOCK columns, so the ends bracket the pixels
+                            # between them, and propagation and the local search cover the rest
+                            # (every pixel's own prediction: 1.4x the work for the same PSNR
+                            # within 0.04 dB on disk/fan/car); ends whose sources match predict
+                            # alike
                             last = max(1, p1 - p0 - 1)
                             for c in range(n_c):
                                 s0 = src[i, c, 0]
@@ -452,7 +454,7 @@ def _nnf_blocks(
                                 s1 = src[i, c, 1]
                                 w0 = wt[i, c, 0]
                                 w1 = wt[i, c, 1]
-                                ay = np.int64(-(1 << 40))
+                                ay = np.int64(_NO_OFFSET)
                                 ax = ay
                                 by = ay
                                 bx = ay
@@ -491,22 +493,7 @@ def _nnf_blocks(
                         if nj >= j0 and nj < j1:
                             nc = _add_cand(cand, nc, offi[nj, 0], offi[nj, 1])
                     for c in range(nc):
-                        _eval_block(
-                            ref,
-                            tgt,
-                            xb,
-                            xl,
-                            y,
-                            cand[c, 0],
-                            cand[c, 1],
-                            h,
-                            w,
-                            patch,
-                            cs,
-                            boy,
-                            box,
-                            bc,
-                        )
+                        _eval_block(ref, tgt, y, xb, xl, cand[c, 0], cand[c, 1], lanes, cs, search)
                     # random search at halving radii around the block's distinct bests: in the
                     # full search around each current best (re-collected at every radius); in
                     # a predicted target's local search around the first two distinct bests
@@ -516,14 +503,14 @@ def _nnf_blocks(
                         o = xs[k] - xb
                         nb = _add_cand(cand, nb, boy[o], box[o])
                     if predicted:
-                        nb = min(nb, 2)
+                        nb = min(nb, _NEAR_SEEDS)
                     r = max_r
                     while r >= 1:
                         for u in range(nb):
-                            ry, rx = _rand2(seed, i, bkeys[q] * 8 + u, it * 64 + r, r)
+                            ry, rx = _rand2(seed, i, bkeys[q] * BLOCK + u, it * _SCAN_KEY + r, r)
                             cy = cand[u, 0] + ry
                             cx = cand[u, 1] + rx
-                            _eval_block(ref, tgt, xb, xl, y, cy, cx, h, w, patch, cs, boy, box, bc)
+                            _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search)
                         r //= 2
                         if not predicted:
                             nb = 0
@@ -538,7 +525,7 @@ def _nnf_blocks(
     return off, cost
 
 
-def _temporal_plan(steps, iters: int, max_radius: int, near_radius: int, near_iters: int):
+def _temporal_plan(steps, iters: int, max_radius: int, near_radius: int, near_iters: int) -> _Plan:
     """Order, offset predictors, radii and scans of the targets from their signed steps.
 
     Targets run by increasing ``|step|`` (the ``t - s`` side first). Each gets up to three
@@ -551,8 +538,8 @@ def _temporal_plan(steps, iters: int, max_radius: int, near_radius: int, near_it
     """
     steps = [int(v) for v in steps]
     n = len(steps)
-    src = np.full((n, 3, 2), -1, np.int64)
-    wt = np.zeros((n, 3, 2), np.float64)
+    src = np.full((n, _PREDICTIONS, _SOURCES), -1, np.int64)
+    wt = np.zeros((n, _PREDICTIONS, _SOURCES), np.float64)
     radius = np.full(n, max_radius, np.int64)
     scans = np.full(n, iters, np.int64)
     order = sorted(range(n), key=lambda i: (abs(steps[i]), steps[i] > 0, i))
@@ -584,55 +571,22 @@ def _temporal_plan(steps, iters: int, max_radius: int, near_radius: int, near_it
             radius[i] = min(max_radius, near_radius)
             scans[i] = near_iters
         done.append(i)
-    return np.array(order, np.int64), src, wt, radius, scans
+    return _Plan(np.array(order, np.int64), src, wt, radius, scans)
 
 
-def nnf_multi(
-    ref: np.ndarray,
-    targets: np.ndarray,
-    mask: np.ndarray,
-    *,
-    patch: int = 6,
-    iters: int = 3,
-    max_radius: int = 16,
-    seed: int = 0,
-    origin: tuple[int, int] = (0, 0),
-    offsets_steps=None,
-    near_radius: int = 2,
-    near_iters: int = 1,
-    band: int = 16,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest-neighbour fields from ``ref`` to each of ``targets`` on the ``mask`` pixels.
+def _independent_plan(n: int, iters: int, max_radius: int) -> _Plan:
+    """Every target on its own: no predictions, the full search (``max_radius``, ``iters``)."""
+    return _Plan(
+        np.arange(n, dtype=np.int64),
+        np.full((n, _PREDICTIONS, _SOURCES), -1, np.int64),
+        np.zeros((n, _PREDICTIONS, _SOURCES), np.float64),
+        np.full(n, max_radius, np.int64),
+        np.full(n, iters, np.int64),
+    )
 
-    Parameters
-    ----------
-    ref : ndarray (H, W) float32
-        Guide image of the reference frame.
-    targets : ndarray (N, H, W) float32
-        Guide images of the target frames.
-    mask : ndarray (H, W) bool
-        Pixels whose patches are matched.
-    patch : int
-        Patch side (pixels); the paper uses 6.
-    iters : int
-        PatchMatch scans (alternating direction).
-    max_radius : int
-        Largest random-search radius (pixels).
-    seed : int
-        Seed of the counter-based random search (any int; reduced modulo 2**64).
-    origin : (int, int)
-        Position of ``ref[0, 0]`` in the full frame: each pixel's random draws are keyed by
-        its full-frame position, so a crop and the whole frame draw alike.
 
-    Returns
-    -------
-    ys, xs : ndarray (M,) int64
-        Coordinates of the matched pixels (row-major order).
-    offsets : ndarray (N, M, 2) int32
-        (dy, dx) from each pixel to its match in each target.
-    cost : ndarray (N, M) float32
-        SSD of each match (guide units squared, summed over the patch).
-    """
+def _prepare(ref, targets, mask, patch: int, iters: int, max_radius: int, origin):
+    """Checked float32 images, the masked pixels and zeroed outputs of both searches."""
     ref = np.ascontiguousarray(ref, dtype=np.float32)
     targets = np.ascontiguousarray(targets, dtype=np.float32)
     if targets.ndim != 3 or targets.shape[1:] != ref.shape:
@@ -646,62 +600,217 @@ def nnf_multi(
     index[ys, xs] = np.arange(ys.size)
     # the random search of a pixel is keyed by its position in the full frame, so the same
     # pixel draws the same offsets whatever else is matched (crop or whole frame)
-    keys = (ys + int(origin[0])) * np.int64(1 << 20) + (xs + int(origin[1]))
+    keys = (ys + int(origin[0])) * np.int64(_ROW_KEY) + (xs + int(origin[1]))
     off = np.zeros((targets.shape[0], ys.size, 2), np.int32)
     cost = np.zeros((targets.shape[0], ys.size), np.float32)
-    if ys.size and targets.shape[0]:
-        s = np.uint64(int(seed) % (1 << 64))
-        if offsets_steps is not None:
-            order, src, wt, radius, scans = _temporal_plan(
-                offsets_steps, iters, max_radius, near_radius, near_iters
-            )
-            # blocks of masked pixels in one row and one 8-column cell of the full frame, and
-            # bands of ``band`` full-frame rows: a crop and the whole frame cut alike
-            fy = ys + int(origin[0])
-            cell = (xs + int(origin[1])) // 8
-            new = np.ones(ys.size, bool)
-            new[1:] = (np.diff(fy) != 0) | (np.diff(cell) != 0)
-            blocks = np.append(np.nonzero(new)[0], ys.size).astype(np.int64)
-            bfy = fy[blocks[:-1]]
-            bkeys = bfy * np.int64(1 << 20) + cell[blocks[:-1]]
-            bid = bfy // max(1, int(band))
-            cuts = np.nonzero(np.diff(bid))[0] + 1
-            bands = np.concatenate([[0], cuts, [blocks.size - 1]]).astype(np.int64)
-            _nnf_blocks(
-                _pad(ref, patch, _EXTRA),
-                _pad(targets, patch, _EXTRA),
-                ys,
-                xs,
-                bkeys,
-                blocks,
-                index,
-                bands,
-                order,
-                src,
-                wt,
-                radius,
-                scans,
-                patch,
-                s,
-                off,
-                cost,
-            )
-            return ys, xs, off, cost
-        _nnf_kernel(
+    return ref, targets, _Pixels(ys, xs, index, keys), off, cost
+
+
+def _search(patch: int, seed: int) -> _Search:
+    return _Search(int(patch), np.uint64(int(seed) % (1 << 64)), _simd.choice())
+
+
+def nnf_independent(
+    ref: np.ndarray,
+    targets: np.ndarray,
+    mask: np.ndarray,
+    *,
+    patch: int = PATCH,
+    iters: int = ITERS,
+    max_radius: int = MAX_RADIUS,
+    seed: int = 0,
+    origin: tuple[int, int] = (0, 0),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest-neighbour fields from ``ref`` to each of ``targets``, each target on its own.
+
+    Every target gets the full search from zero motion, pixel by pixel: ``iters`` alternating
+    scans of propagation and random search at radii ``max_radius, max_radius / 2, ..., 1``,
+    the SSD stopping early once above the pixel's best. The targets run in parallel.
+
+    Parameters
+    ----------
+    ref : ndarray (H, W) float32
+        Guide image of the reference frame.
+    targets : ndarray (N, H, W) float32
+        Guide images of the target frames.
+    mask : ndarray (H, W) bool
+        Pixels whose patches are matched.
+    patch : int
+        Patch side (pixels); the paper uses 6.
+    iters : int
+        PatchMatch scans (alternating direction) of a full search.
+    max_radius : int
+        Largest random-search radius (pixels) of a full search.
+    seed : int
+        Seed of the counter-based random search (any int; reduced modulo 2**64).
+    origin : (int, int)
+        Position of ``ref[0, 0]`` in the full frame: the random draws are keyed by full-frame
+        positions (and the temporal schedule's blocks and bands are cut there), so a crop and
+        the whole frame draw alike.
+
+    Returns
+    -------
+    ys, xs : ndarray (M,) int64
+        Coordinates of the matched pixels (row-major order).
+    offsets : ndarray (N, M, 2) int32
+        (dy, dx) from each pixel to its match in each target.
+    cost : ndarray (N, M) float32
+        SSD of each match (guide units squared, summed over the patch).
+    """
+    ref, targets, pixels, off, cost = _prepare(ref, targets, mask, patch, iters, max_radius, origin)
+    if pixels.ys.size and targets.shape[0]:
+        _nnf_independent_kernel(
             _pad(ref, patch),
             _pad(targets, patch),
-            ys,
-            xs,
-            keys,
-            index,
-            patch,
-            iters,
-            max_radius,
-            s,
+            pixels,
+            _independent_plan(targets.shape[0], iters, max_radius),
+            _search(patch, seed),
+            off,
+            cost,
+        )
+    return pixels.ys, pixels.xs, off, cost
+
+
+def nnf_temporal(
+    ref: np.ndarray,
+    targets: np.ndarray,
+    mask: np.ndarray,
+    offsets_steps,
+    *,
+    patch: int = PATCH,
+    iters: int = ITERS,
+    max_radius: int = MAX_RADIUS,
+    near_radius: int = NEAR_RADIUS,
+    near_iters: int = NEAR_ITERS,
+    band: int = BAND,
+    seed: int = 0,
+    origin: tuple[int, int] = (0, 0),
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest-neighbour fields from ``ref`` to each of ``targets`` by the temporal schedule.
+
+    ``offsets_steps`` gives each target's signed step from the reference. Targets run by
+    increasing ``|step|``; one without an earlier target to predict from gets the full search
+    (``iters``, ``max_radius``), every other starts from the offsets predicted by the nearer
+    targets and gets a local search (``near_iters`` scans at radii ``near_radius .. 1``).
+    Pixels are searched in blocks of :data:`BLOCK` full-frame columns of one row, and the
+    work is split into bands of ``band`` full-frame rows that run in parallel (propagation
+    stays inside a band). See the module docstring.
+
+    Parameters
+    ----------
+    ref : ndarray (H, W) float32
+        Guide image of the reference frame.
+    targets : ndarray (N, H, W) float32
+        Guide images of the target frames.
+    mask : ndarray (H, W) bool
+        Pixels whose patches are matched.
+    patch : int
+        Patch side (pixels); the paper uses 6.
+    iters : int
+        PatchMatch scans (alternating direction) of a full search.
+    max_radius : int
+        Largest random-search radius (pixels) of a full search.
+    seed : int
+        Seed of the counter-based random search (any int; reduced modulo 2**64).
+    origin : (int, int)
+        Position of ``ref[0, 0]`` in the full frame: the random draws are keyed by full-frame
+        positions (and the temporal schedule's blocks and bands are cut there), so a crop and
+        the whole frame draw alike.
+    offsets_steps : sequence of int, length N
+        Each target's signed step from the reference frame.
+    near_radius, near_iters : int
+        Random-search radius (pixels) and scans of a predicted target's local search.
+    band : int
+        Height (full-frame rows) of the bands that run in parallel.
+
+    Returns
+    -------
+    ys, xs : ndarray (M,) int64
+        Coordinates of the matched pixels (row-major order).
+    offsets : ndarray (N, M, 2) int32
+        (dy, dx) from each pixel to its match in each target.
+    cost : ndarray (N, M) float32
+        SSD of each match (guide units squared, summed over the patch).
+    """
+    steps = [int(v) for v in offsets_steps]
+    if len(steps) != np.shape(targets)[0]:
+        raise ValueError(f"{len(steps)} offsets_steps for {np.shape(targets)[0]} targets")
+    ref, targets, pixels, off, cost = _prepare(ref, targets, mask, patch, iters, max_radius, origin)
+    ys, xs = pixels.ys, pixels.xs
+    if ys.size and targets.shape[0]:
+        plan = _temporal_plan(steps, iters, max_radius, near_radius, near_iters)
+        # blocks of masked pixels in one row and one BLOCK-column cell of the full frame, and
+        # bands of ``band`` full-frame rows: a crop and the whole frame cut alike
+        fy = ys + int(origin[0])
+        cell = (xs + int(origin[1])) // BLOCK
+        new = np.ones(ys.size, bool)
+        new[1:] = (np.diff(fy) != 0) | (np.diff(cell) != 0)
+        starts = np.append(np.nonzero(new)[0], ys.size).astype(np.int64)
+        bfy = fy[starts[:-1]]
+        bkeys = bfy * np.int64(_ROW_KEY) + cell[starts[:-1]]
+        bid = bfy // max(1, int(band))
+        cuts = np.nonzero(np.diff(bid))[0] + 1
+        bands = np.concatenate([[0], cuts, [starts.size - 1]]).astype(np.int64)
+        _nnf_temporal_kernel(
+            _pad(ref, patch, _EXTRA),
+            _pad(targets, patch, _EXTRA),
+            pixels,
+            _Blocks(starts, bkeys, bands),
+            plan,
+            _search(patch, seed),
             off,
             cost,
         )
     return ys, xs, off, cost
+
+
+def nnf_multi(
+    ref: np.ndarray,
+    targets: np.ndarray,
+    mask: np.ndarray,
+    *,
+    patch: int = PATCH,
+    iters: int = ITERS,
+    max_radius: int = MAX_RADIUS,
+    seed: int = 0,
+    origin: tuple[int, int] = (0, 0),
+    offsets_steps=None,
+    near_radius: int = NEAR_RADIUS,
+    near_iters: int = NEAR_ITERS,
+    band: int = BAND,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest-neighbour fields from ``ref`` to each of ``targets`` on the ``mask`` pixels.
+
+    Picks the schedule: without ``offsets_steps``, :func:`nnf_independent` (every target its
+    own full search; ``near_radius``, ``near_iters`` and ``band`` are not used); with them
+    (each target's signed step from the reference), :func:`nnf_temporal`. The parameters and
+    the result are theirs.
+    """
+    if offsets_steps is None:
+        return nnf_independent(
+            ref,
+            targets,
+            mask,
+            patch=patch,
+            iters=iters,
+            max_radius=max_radius,
+            seed=seed,
+            origin=origin,
+        )
+    return nnf_temporal(
+        ref,
+        targets,
+        mask,
+        offsets_steps,
+        patch=patch,
+        iters=iters,
+        max_radius=max_radius,
+        near_radius=near_radius,
+        near_iters=near_iters,
+        band=band,
+        seed=seed,
+        origin=origin,
+    )
 
 
 @njit(parallel=True, cache=True)
@@ -710,7 +819,7 @@ def _fuse_kernel(ref_raw, raw, ys, xs, off, cost, scale, out):  # pragma: no cov
     # cache), each pixel still summing the reference and then the targets in order
     n_t, h, w = raw.shape
     m = ys.shape[0]
-    chunk = 1024
+    chunk = _FUSE_CHUNK
     for ch in prange((m + chunk - 1) // chunk):
         j0 = ch * chunk
         j1 = min(m, j0 + chunk)
@@ -740,7 +849,7 @@ def fuse_matches(
     offsets: np.ndarray,
     cost: np.ndarray,
     *,
-    patch: int = 6,
+    patch: int = PATCH,
     h: float = 0.0,
 ) -> np.ndarray:
     """Average the reference value with the matched values of every target at the given pixels.
@@ -771,16 +880,16 @@ def patchmatch_fuse(
     guides: np.ndarray,
     mask: np.ndarray,
     *,
-    patch: int = 6,
-    iters: int = 3,
-    max_radius: int = 16,
+    patch: int = PATCH,
+    iters: int = ITERS,
+    max_radius: int = MAX_RADIUS,
     h: float = 0.0,
     seed: int = 0,
     origin: tuple[int, int] = (0, 0),
     offsets_steps=None,
-    near_radius: int = 2,
-    near_iters: int = 1,
-    band: int = 16,
+    near_radius: int = NEAR_RADIUS,
+    near_iters: int = NEAR_ITERS,
+    band: int = BAND,
 ) -> np.ndarray:
     """Refine ``ref_raw`` on ``mask`` by PatchMatch over the target frames.
 

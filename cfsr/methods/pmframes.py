@@ -14,7 +14,7 @@ import os
 import threading
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import get_num_threads, njit, prange
@@ -23,6 +23,12 @@ from cfsr._words import ROW_PAD, PackedWindow, popcount, row_words, word_spikes
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
+
+# spike words: one bit per step, 64 steps per uint64 word (step s of the span is bit s & 63 of
+# word s >> 6)
+_WORD_BITS = 64
+_WORD_SHIFT = 6
+_WORD_MASK = _WORD_BITS - 1
 
 
 @njit(cache=True, inline="always")
@@ -54,14 +60,43 @@ def _rank(words, k, pre, q, mask):  # pragma: no cover - numba
     return pre[q] + np.int64(popcount(words[k, q] & mask))
 
 
+class _Span(NamedTuple):
+    """The packed window and the steps ``[lo, hi)`` whose spike words are read."""
+
+    packed: np.ndarray  #: uint8: the window's packed frames (:class:`PackedWindow`)
+    geo: np.ndarray  #: int64: their geometry (:class:`PackedWindow`)
+    lo: int
+    hi: int
+
+
+class _Centers(NamedTuple):
+    """The steps the frames are computed at and the rules' settings."""
+
+    steps: np.ndarray  #: int64 (K,): ascending
+    slot: np.ndarray  #: int64 (K,): frame written for each step
+    max_isi: int  #: half-width of each step's search range
+    guide: int  #: TFA intervals of the guide (0: no TFA frames)
+
+
+class _Region(NamedTuple):
+    """Where the frames are computed: crop rows, and per tile row the column runs."""
+
+    y0: int  #: crop origin in the full frame
+    x0: int
+    tile: int  #: tile side (pixels)
+    rows: np.ndarray  #: int64: crop rows with work
+    runs_at: np.ndarray  #: int64 (tile rows + 1,): each tile row's first run in ``runs``
+    runs: np.ndarray  #: int64 (R, 2): column runs ``[xa, xb)``, crop columns
+
+
 @njit(parallel=True, cache=True)
-def _pm_kernel(
-    packed, geo, lo, hi, y0, x0, centers, slot, m, thr, tile, rows, runs_at, runs, raw, tfa
-):
+def _pm_kernel(span, centers_, region, raw, tfa):
     # pragma: no cover - numba
     """TFI rates (``1 / ISI``, float32) and TFA rates at ``centers`` (ascending; written to
     frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the crop rows ``rows`` and, in
-    each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``.
+    each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``
+    (``span``, ``centers_`` and ``region``: :class:`_Span`, :class:`_Centers`,
+    :class:`_Region`; ``m`` is ``max_isi``, ``thr`` the guide's intervals).
 
     Per pixel, the spike indices each center needs (last spike ``<= c``, first spikes
     ``>= c - m`` and ``>= c + m + 1``) are ranks: prefix popcounts of its spike words. Only
@@ -72,10 +107,13 @@ def _pm_kernel(
     interval's, the TFA span :func:`grow_span`'s merge; the others follow the rules as
     written (:func:`isi_from_times`, :func:`grow_span`).
     """
+    packed, geo, lo, hi = span
+    centers, slot, m, thr = centers_
+    y0, x0, tile, rows, runs_at, runs = region
     n = packed.shape[0]
     kc = centers.shape[0]
     cw = raw.shape[2]
-    nw = (hi - lo + 63) >> 6
+    nw = (hi - lo + _WORD_MASK) >> _WORD_SHIFT
     side = max(thr - 1, 0)  # spikes a fast pixel needs beyond each center's interval
     # per center: word and bit mask of the steps c + 1, c_lo and c_hi (ranks = spikes before)
     qs = np.empty((kc, 3), np.int64)
@@ -84,8 +122,8 @@ def _pm_kernel(
     for kk in range(kc):
         cc = centers[kk]
         for j, t in enumerate((cc + 1, max(0, cc - m), min(n, cc + m + 1))):
-            qs[kk, j] = (t - lo) >> 6
-            ms[kk, j] = (one << np.uint64((t - lo) & 63)) - one
+            qs[kk, j] = (t - lo) >> _WORD_SHIFT
+            ms[kk, j] = (one << np.uint64((t - lo) & _WORD_MASK)) - one
     q_ip = qs[:, 0].copy()
     m_ip = ms[:, 0].copy()
     uthr = np.uint64(max(thr, 0))
@@ -130,7 +168,7 @@ def _pm_kernel(
                     q += 1
                 i = pre[q]
                 while i < r1:
-                    i = word_spikes(words[k, q], lo + 64 * q, tv, i)
+                    i = word_spikes(words[k, q], lo + _WORD_BITS * q, tv, i)
                     q += 1
                 f0_b = _rank(words, k, pre, qs[kc - 1, 1], ms[kc - 1, 1])
                 f1_a = _rank(words, k, pre, qs[0, 2], ms[0, 2])
@@ -256,20 +294,9 @@ def pm_frames(
     raw = np.ones((cs.size, y1 - y0, x1 - x0), np.float32)
     tfa = np.ones(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     _pm_kernel(
-        src.packed,
-        src.geo,
-        lo,
-        hi,
-        y0,
-        x0,
-        cs[order],
-        order,
-        m,
-        thr,
-        TILE,
-        rows,
-        runs_at,
-        runs,
+        _Span(src.packed, src.geo, lo, hi),
+        _Centers(cs[order], order, m, thr),
+        _Region(y0, x0, TILE, rows, runs_at, runs),
         raw,
         tfa,
     )
