@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cfsr._isi import needs_after, needs_before, tfi_interval
 from cfsr.layout import Layout
 
 __all__ = [
@@ -74,45 +75,34 @@ def _bit(packed, t, p):  # pragma: no cover - numba
 
 
 @njit(cache=True, inline="always")
+def _prev_bit(packed, p, t, lo):  # pragma: no cover - numba
+    """Last frame in ``[lo, t]`` where stored pixel ``p`` fired (-1: none)."""
+    while t >= lo:
+        if _bit(packed, t, p):
+            return t
+        t -= 1
+    return -1
+
+
+@njit(cache=True, inline="always")
+def _next_bit(packed, p, t, hi):  # pragma: no cover - numba
+    """First frame in ``[t, hi)`` where stored pixel ``p`` fired (-1: none)."""
+    while t < hi:
+        if _bit(packed, t, p):
+            return t
+        t += 1
+    return -1
+
+
+@njit(cache=True, inline="always")
 def _isi_bits(packed, p, c, lo, hi):  # pragma: no cover - numba
-    # Same rule as cfsr.methods.tfi._isi_one, reading the bits of stored pixel p in place.
-    prev = -1
-    i = c
-    while i >= lo:
-        if _bit(packed, i, p):
-            prev = i
-            break
-        i -= 1
-    nxt = -1
-    i = c + 1
-    while i < hi:
-        if _bit(packed, i, p):
-            nxt = i
-            break
-        i += 1
-    if prev >= 0 and nxt >= 0:
-        return nxt - prev
-    if prev >= 0:
-        pp = -1
-        i = prev - 1
-        while i >= lo:
-            if _bit(packed, i, p):
-                pp = i
-                break
-            i -= 1
-        bound = hi - prev
-        return max(bound, prev - pp) if pp >= 0 else bound
-    if nxt >= 0:
-        nn = -1
-        i = nxt + 1
-        while i < hi:
-            if _bit(packed, i, p):
-                nn = i
-                break
-            i += 1
-        bound = nxt - lo + 1
-        return max(bound, nn - nxt) if nn >= 0 else bound
-    return hi - lo + 1
+    """:func:`cfsr._isi.tfi_interval` at frame ``c`` for stored pixel ``p``, reading its bits
+    in place."""
+    prev = _prev_bit(packed, p, c, lo)
+    nxt = _next_bit(packed, p, c + 1, hi)
+    pp = _prev_bit(packed, p, prev - 1, lo) if needs_before(prev, nxt) else -1
+    nn = _next_bit(packed, p, nxt + 1, hi) if needs_after(prev, nxt) else -1
+    return tfi_interval(prev, nxt, pp, nn, lo, hi)
 
 
 @njit(parallel=True, cache=True)

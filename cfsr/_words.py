@@ -23,6 +23,7 @@ from numba.core import cgutils
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import intrinsic
 
+from cfsr._isi import needs_after, needs_before, tfi_interval
 from cfsr.layout import Layout
 
 __all__ = [
@@ -323,25 +324,13 @@ def range_times(words, k, lo, a, b, times):  # pragma: no cover - numba
 
 @njit(cache=True, inline="always")
 def isi_in_words(words, r, lo, c, a, b):  # pragma: no cover - numba
-    """The TFI interval (Eq. 3) of word row ``r`` at step ``c``, spikes searched in ``[a, b)``.
-
-    ``s_next - s_prev`` with ``s_prev <= c < s_next``; an interval open on one side is the
-    larger of the steps to the search range's end and the neighbouring whole interval, and
-    ``b - a + 1`` without any spike (the numbers of :func:`cfsr.methods.tfi.tfi_rate`, by bit
-    scans, no spike list)."""
-    ip = prev_spike(words, r, lo, c, a)
-    i_n = next_spike(words, r, lo, c + 1, b)
-    if ip >= 0 and i_n >= 0:
-        return i_n - ip
-    if ip >= 0:
-        bound = b - ip
-        pp = prev_spike(words, r, lo, ip - 1, a)
-        return max(bound, ip - pp) if pp >= 0 else bound
-    if i_n >= 0:
-        bound = i_n - a + 1
-        nn = next_spike(words, r, lo, i_n + 1, b)
-        return max(bound, nn - i_n) if nn >= 0 else bound
-    return b - a + 1
+    """The TFI interval (Eq. 3, :func:`cfsr._isi.tfi_interval`) of word row ``r`` at step
+    ``c``, spikes searched in ``[a, b)``, by bit scans (no spike list)."""
+    p = prev_spike(words, r, lo, c, a)
+    n = next_spike(words, r, lo, c + 1, b)
+    pp = prev_spike(words, r, lo, p - 1, a) if needs_before(p, n) else -1
+    nn = next_spike(words, r, lo, n + 1, b) if needs_after(p, n) else -1
+    return tfi_interval(p, n, pp, nn, a, b)
 
 
 @njit(cache=True, inline="always")

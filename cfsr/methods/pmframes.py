@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import get_num_threads, njit, prange
 
+from cfsr._isi import isi_from_times
 from cfsr._words import ROW_PAD, PackedWindow, popcount, row_words, word_spikes
 from cfsr.methods.tfa import grow_span
 
@@ -29,28 +30,6 @@ __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
 _WORD_BITS = 64
 _WORD_SHIFT = 6
 _WORD_MASK = _WORD_BITS - 1
-
-
-@njit(cache=True, inline="always")
-def isi_from_times(tv, ns, ip, a, b):  # pragma: no cover - numba
-    """TFI interval at a step c with search range ``[a, b)`` (the rule of ``tfi._isi_one``);
-    ``ip`` indexes the last spike ``<= c`` (-1: none)."""
-    i_n = ip + 1
-    p_ok = ip >= 0 and tv[ip] >= a
-    n_ok = i_n < ns and tv[i_n] < b
-    if p_ok and n_ok:
-        return tv[i_n] - tv[ip]
-    if p_ok:
-        bound = b - tv[ip]
-        if ip >= 1 and tv[ip - 1] >= a:
-            return max(bound, tv[ip] - tv[ip - 1])
-        return bound
-    if n_ok:
-        bound = tv[i_n] - a + 1
-        if i_n + 1 < ns and tv[i_n + 1] < b:
-            return max(bound, tv[i_n + 1] - tv[i_n])
-        return bound
-    return b - a + 1
 
 
 @njit(cache=True, inline="always")

@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from cfsr._isi import needs_after, needs_before, tfi_interval
 from cfsr._words import (
     PackedWindow,
     count_between,
@@ -68,9 +69,9 @@ def interval_stats(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - nu
     spread is 0 (no evidence of change). <= 0 for a steady pixel (lengths differ by at most
     one step). ``loc``: scratch of at least ``2 * radius + 1`` steps.
 
-    One walk gives both, with the open-interval rule of ``isi_in_words`` written out for the
-    two intervals that can be open (the first and the last): inlining ``isi_in_words`` at
-    three places made this kernel take ~15 s to compile.
+    One walk gives both; the two intervals that can be open (the first and the last) take
+    :func:`cfsr._isi.tfi_interval` with the neighbours the walk already found (inlining
+    ``isi_in_words`` at three places made this kernel take ~15 s to compile).
     """
     t0 = max(a, c - radius)
     t1 = min(b - 1, c + radius)
@@ -83,27 +84,21 @@ def interval_stats(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - nu
     k = 0  # closed intervals seen
     # the first interval, containing t0: from p0 to the first spike after t0
     end = loc[0] if ns > 0 else nx
-    if p0 >= 0 and end >= 0:
-        v = end - p0
-        vmin = min(vmin, v)
-        vmax = max(vmax, v)
-        tot += v
-        k += 1
-    elif p0 >= 0:  # open on the right: no spike after t0 in range
-        bound = b - p0
-        pp = prev_spike(words, r, lo, p0 - 1, a)
-        v = max(bound, p0 - pp) if pp >= 0 else bound
-    elif end >= 0:  # open on the left: no spike at or before t0 in range
-        bound = end - a + 1
+    pp = prev_spike(words, r, lo, p0 - 1, a) if needs_before(p0, end) else -1
+    nn = -1
+    if needs_after(p0, end):  # the spike after end: the next one inside, or the first after
         if ns > 1:
             nn = loc[1]
         elif ns == 1:
             nn = nx
         else:
             nn = next_spike(words, r, lo, end + 1, b)
-        v = max(bound, nn - end) if nn >= 0 else bound
-    else:
-        v = b - a + 1
+    v = tfi_interval(p0, end, pp, nn, a, b)
+    if p0 >= 0 and end >= 0:  # a whole interval
+        vmin = min(vmin, v)
+        vmax = max(vmax, v)
+        tot += v
+        k += 1
     isi_c = v  # c lies in the first interval unless a spike falls in (t0, c]
     for i in range(ns):
         s = loc[i]
@@ -114,8 +109,7 @@ def interval_stats(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - nu
             tot += d
             k += 1
         else:  # the last interval, open on the right
-            pp = loc[i - 1] if i > 0 else p0
-            d = max(b - s, s - pp) if pp >= 0 else b - s
+            d = tfi_interval(s, -1, loc[i - 1] if i > 0 else p0, -1, a, b)
         if s <= c:
             isi_c = d
     if k < 2:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr._isi import isi_from_times, needs_after, needs_before, tfi_interval
 from cfsr._packed import isi_packed, stored_to_image
 from cfsr.methods._spiketimes import pixel_times, row_slab
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
@@ -22,49 +23,33 @@ __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
 
 @njit(cache=True, inline="always")
 def _isi_one(col, c, lo, hi):  # pragma: no cover - numba
-    """ISI (steps) containing step ``c`` in ``col[lo:hi]``; bounded guess when one side is open.
+    """ISI (steps) containing step ``c`` of the byte column ``col``, spikes searched in
+    ``[lo, hi)``: :func:`cfsr._isi.tfi_interval`, open ends included."""
+    p = _prev_in(col, c, lo)
+    n = _next_in(col, c + 1, hi)
+    pp = _prev_in(col, p - 1, lo) if needs_before(p, n) else -1
+    nn = _next_in(col, n + 1, hi) if needs_after(p, n) else -1
+    return tfi_interval(p, n, pp, nn, lo, hi)
 
-    With no spike before ``c`` (or after it) the interval is at least as long as the distance to
-    the search edge, and at least as long as the neighbouring complete interval; the larger of
-    the two is used, so dark pixels get small, finite rates instead of 0 or Inf.
-    """
-    p = -1
-    i = c
-    while i >= lo:
-        if col[i]:
-            p = i
-            break
-        i -= 1
-    n = -1
-    i = c + 1
-    while i < hi:
-        if col[i]:
-            n = i
-            break
-        i += 1
-    if p >= 0 and n >= 0:
-        return n - p
-    if p >= 0:
-        pp = -1
-        i = p - 1
-        while i >= lo:
-            if col[i]:
-                pp = i
-                break
-            i -= 1
-        bound = hi - p
-        return max(bound, p - pp) if pp >= 0 else bound
-    if n >= 0:
-        nn = -1
-        i = n + 1
-        while i < hi:
-            if col[i]:
-                nn = i
-                break
-            i += 1
-        bound = n - lo + 1
-        return max(bound, nn - n) if nn >= 0 else bound
-    return hi - lo + 1
+
+@njit(cache=True, inline="always")
+def _prev_in(col, t, lo):  # pragma: no cover - numba
+    """Last spike of ``col`` in ``[lo, t]`` (-1: none)."""
+    while t >= lo:
+        if col[t]:
+            return t
+        t -= 1
+    return -1
+
+
+@njit(cache=True, inline="always")
+def _next_in(col, t, hi):  # pragma: no cover - numba
+    """First spike of ``col`` in ``[t, hi)`` (-1: none)."""
+    while t < hi:
+        if col[t]:
+            return t
+        t += 1
+    return -1
 
 
 @njit(parallel=True, cache=True)
@@ -126,27 +111,9 @@ def _isi_multi_kernel(spikes, centers, m, lo, hi, out):  # pragma: no cover - nu
                 c = centers[k]
                 a = max(0, c - m)
                 b = min(n, c + m + 1)
-                # ip: last spike <= c (index into times), in = first spike > c
+                # ip: last spike <= c (index into times)
                 ip = np.searchsorted(times[:ns], c, side="right") - 1
-                i_n = ip + 1
-                p_ok = ip >= 0 and times[ip] >= a
-                n_ok = i_n < ns and times[i_n] < b
-                if p_ok and n_ok:
-                    out[k, y, x] = times[i_n] - times[ip]
-                elif p_ok:
-                    bound = b - times[ip]
-                    if ip >= 1 and times[ip - 1] >= a:
-                        out[k, y, x] = max(bound, times[ip] - times[ip - 1])
-                    else:
-                        out[k, y, x] = bound
-                elif n_ok:
-                    bound = times[i_n] - a + 1
-                    if i_n + 1 < ns and times[i_n + 1] < b:
-                        out[k, y, x] = max(bound, times[i_n + 1] - times[i_n])
-                    else:
-                        out[k, y, x] = bound
-                else:
-                    out[k, y, x] = b - a + 1
+                out[k, y, x] = isi_from_times(times, ns, ip, a, b)
     return out
 
 
