@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -285,36 +285,54 @@ def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no c
     return daisi_from_times(loc[:nl], a_lo, a_hi, logs)
 
 
+class _Words(NamedTuple):
+    """The packed window and the steps ``[lo, hi)`` whose spike words a scan reads."""
+
+    packed: np.ndarray  #: uint8 (n, frame bytes)
+    geo: np.ndarray  #: int64 (5,): :func:`cfsr._words.geometry`
+    lo: int
+    hi: int
+
+
+class _Union(NamedTuple):
+    """The union ``[u_lo, u_hi)`` of the K distinction windows, their length ``span`` (T)
+    and ``theta`` (Eq. 5-6)."""
+
+    u_lo: int
+    u_hi: int
+    span: int
+    theta: int
+
+
+class _Spans(NamedTuple):
+    """The static-rate spans of the K history frames and of t: span j is ``[bounds[ia[j]],
+    bounds[ib[j]])`` (shared edges counted once), ``isi_est[j]`` its rule, ``cents[j]`` the
+    step whose TFI (``m`` steps each side) a sparse pixel takes."""
+
+    bounds: np.ndarray  #: int64 (nb,): sorted distinct span edges
+    ia: np.ndarray  #: int64 (K + 1,)
+    ib: np.ndarray  #: int64 (K + 1,)
+    isi_est: np.ndarray  #: bool (K + 1,)
+    cents: np.ndarray  #: int64 (K + 1,)
+    m: int
+
+
+class _Daisi(NamedTuple):
+    """DAISI at ``c`` over ``c +- dspan`` (Eq. 10-14), spikes read in ``[d_lo, d_hi)``."""
+
+    c: int
+    dspan: int
+    d_lo: int
+    d_hi: int
+    logs: np.ndarray  #: float64: :func:`cfsr.methods.daisi.log_table`
+
+
 @njit(parallel=True, cache=True)
-def _static_kernel(
-    packed,
-    geo,
-    lo,
-    hi,
-    u_lo,
-    u_hi,
-    span,
-    theta,
-    bounds,
-    ia,
-    ib,
-    c,
-    dspan,
-    d_lo,
-    d_hi,
-    logs,
-    isi_est,
-    cents,
-    m,
-    ub,
-    tfp,
-    daisi,
-    store,
-    bases,
-):  # pragma: no cover - numba
+def _static_kernel(src, union, spans, dai, ub, tfp, daisi, store, bases):
+    # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
 
-    Per pixel, on words of ``[lo, hi)``: ``ub``, the distinct ISIs of the union
+    Per pixel, on the words of ``src`` (:class:`_Words`): ``ub``, the distinct ISIs of the union
     ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at ``theta``): every window's
     ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
     the TFP rates ``tfp[j]`` (Eq. 4: spikes in ``[bounds[ia[j]], bounds[ib[j]])`` over the
@@ -325,6 +343,10 @@ def _static_kernel(
     ``store[y]`` (pixel ``x`` of row ``y`` at ``bases[y, 0] + bases[y, 1] * x``) for the
     second pass.
     """
+    packed, geo, lo, hi = src
+    u_lo, u_hi, span, theta = union
+    bounds, ia, ib, isi_est, cents, m = spans
+    c, dspan, d_lo, d_hi, logs = dai
     h, w = ub.shape
     n_all = packed.shape[0]
     n_win = ia.shape[0]
@@ -452,25 +474,17 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     store = _scratch((h, w + ROW_PAD, (hi - lo + 63) >> 6))
     bases = np.empty((h, 2), np.int64)
     _static_kernel(
-        src.packed,
-        src.geo,
-        lo,
-        hi,
-        u_lo,
-        u_hi,
-        span,
-        theta,
-        bounds.astype(np.int64),
-        np.ascontiguousarray(inv[:, 0]),
-        np.ascontiguousarray(inv[:, 1]),
-        int(center),
-        dspan,
-        d_lo,
-        d_hi,
-        log_table(d_hi - d_lo),
-        isi_win,
-        np.append(ends, center).astype(np.int64),
-        m,
+        _Words(src.packed, src.geo, lo, hi),
+        _Union(u_lo, u_hi, span, theta),
+        _Spans(
+            bounds.astype(np.int64),
+            np.ascontiguousarray(inv[:, 0]),
+            np.ascontiguousarray(inv[:, 1]),
+            isi_win,
+            np.append(ends, center).astype(np.int64),
+            m,
+        ),
+        _Daisi(int(center), dspan, d_lo, d_hi, log_table(d_hi - d_lo)),
         ub,
         tfps,
         daisi,
