@@ -38,10 +38,11 @@ def reconstruct_outputs(
     p = resolve_params(m, params, preset)
     before, after = m.window(p)
     outs = []
+    memo: dict[str, Any] = {}  # recurrent methods continue a state from output to output
     for t in check_times(times, rec.n_frames):
         a = max(0, t - before)
         b = min(rec.n_frames, t + after + 1)
-        outs.append(m.run_window(rec, a, b, t, p))
+        outs.append(m.run_window(rec, a, b, t, p, memo))
     return outs
 
 

@@ -168,9 +168,55 @@ def method_fps(
     t = sr.latest_step()
     if t is None:
         raise ValueError(f"{len(packed)} frames are too few for {method}'s window")
-    sec = time_call(lambda: sr.compute(t), min_time=min_time)
+
+    def isolated():
+        sr.memo.clear()  # a recurrent method's state from the previous call is not shared
+        return sr.compute(t)
+
+    sec = time_call(isolated, min_time=min_time)
     fps = 1.0 / sec
     return {"ms_per_frame": sec * 1e3, "fps": fps, "display_rtf": fps / DISPLAY_FPS}
+
+
+def dense_output(
+    packed: np.ndarray,
+    layout,
+    method: str,
+    *,
+    stride: int,
+    count: int,
+    min_time: float = 0.5,
+) -> dict[str, Any]:
+    """Milliseconds per frame of ``count`` outputs ``stride`` steps apart, through one
+    streaming reconstructor (as ``cfsr reconstruct --times A:B:stride`` runs them), beside the
+    isolated frame of :func:`method_fps`; ``speedup`` is isolated / dense.
+
+    Outputs closer together than a method's window may share work (a recurrent method's
+    state, :attr:`cfsr.methods.registry.Method.recurrent`); the results are the same.
+    """
+    from cfsr.streaming import StreamingReconstructor
+
+    sr = StreamingReconstructor(method, layout, slack=len(packed))
+    sr.push(packed, 0)
+    last = sr.latest_step()
+    times = [] if last is None else [last - stride * i for i in range(count)][::-1]
+    if not times or times[0] - sr.before < 0:
+        raise ValueError(f"{len(packed)} frames are too few for {count} {method} outputs")
+
+    def run():
+        sr.memo.clear()
+        for t in times:
+            sr.compute(t)
+
+    sec = time_call(run, min_time=min_time, max_reps=20) / count
+    iso = method_fps(packed, layout, method, min_time=min_time)["ms_per_frame"]
+    return {
+        "stride": int(stride),
+        "frames": int(count),
+        "ms_per_frame": sec * 1e3,
+        "isolated_ms_per_frame": iso,
+        "speedup": iso / (sec * 1e3),
+    }
 
 
 def amdahl(t1: float, tn: float, n: int) -> float:

@@ -63,6 +63,9 @@ class StreamingReconstructor:
         self._first = 0  # absolute step of the oldest buffered frame
         self._next = 0  # absolute step expected next
         self._count = 0  # buffered frames
+        # state a recurrent method carries between outputs of this stream (Method.recurrent);
+        # emptied whenever the stream or the method changes
+        self.memo: dict[str, Any] = {}
         self.set_method(method, params=params, preset=preset)
 
     # -- configuration -------------------------------------------------------------------
@@ -113,6 +116,7 @@ class StreamingReconstructor:
         self.config = cfg
         self.method, self.params = m, p
         self.before, self.after = before, after
+        self.memo = {}
         if buf is not self._buf:
             self._buf, self._capacity = buf, cap
             self._count = keep
@@ -135,7 +139,9 @@ class StreamingReconstructor:
         return self._next
 
     def reset(self, start: int = 0) -> None:
+        """Forget the buffered frames (and any recurrent state); the next step is ``start``."""
         self._count = 0
+        self.memo = {}
         self._first = self._next = int(start)
 
     def push(self, packed: np.ndarray, start: int | None = None) -> None:
@@ -201,7 +207,7 @@ class StreamingReconstructor:
             )
         a = max(self._first, t - self.before)
         b = min(self._next, t + self.after + 1)
-        return self.method.run_window(self, a, b, t, self.params)
+        return self.method.run_window(self, a, b, t, self.params, self.memo)
 
     def frames(self, a: int, b: int) -> np.ndarray:
         """Buffered frames of steps ``[a, b)`` unpacked to upright ``(b - a, H, W)`` uint8."""

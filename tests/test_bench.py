@@ -67,6 +67,11 @@ def test_bench_quick_throughput_json(tmp_path):
         if "2" in sc["ms_per_frame"]:
             assert 0.0 <= sc["parallel_fraction"] <= 1.0
             assert 1.0 <= sc["predicted_speedup"]["8"] <= 8.0
+    # dense output: a recurrent method's frames one step apart continue one state
+    d = res["dense"]["tfstp"]
+    assert d["stride"] == 1 and d["frames"] > 1 and d["ms_per_frame"] > 0
+    assert d["speedup"] == pytest.approx(d["isolated_ms_per_frame"] / d["ms_per_frame"])
+    assert res["dense"]["cfsr"]["stride"] == 32
 
 
 def test_amdahl_parallel_fraction():

@@ -24,11 +24,21 @@ from cfsr.methods.registry import MAX_UNPACKED_STEPS, MAX_WINDOW_STEPS, Param
 
 
 # -- the parameter ranges --------------------------------------------------------------------
+def test_tfstp_largest_warmup_fits_its_window_limit():
+    # the state may start a grid step before t - warmup, so warmup's range leaves room for it
+    m = get_method("tfstp")
+    top = m.params["warmup"].maximum
+    assert sum(m.window({"warmup": top})) <= m.max_span
+    assert resolve_params(m, {"warmup": top})["warmup"] == top
+
+
 def test_every_parameter_has_a_documented_range():
     for name, d in methods().items():
         m = get_method(name)
         assert d["max_window_steps"] == m.max_span
-        assert m.max_span == (MAX_WINDOW_STEPS if m.compute_packed else MAX_UNPACKED_STEPS)
+        # methods that unpack their window (TFSTP also when it has no state to continue)
+        unpacks = m.compute_packed is None or name == "tfstp"
+        assert m.max_span == (MAX_UNPACKED_STEPS if unpacks else MAX_WINDOW_STEPS)
         for key, p in m.params.items():
             info = d["params"][key]
             if isinstance(p.default, bool):
@@ -68,7 +78,7 @@ def test_a_parameter_without_bounds_cannot_be_declared():
         ("tfp", {"window": 0}, ["window", "1..40000"]),
         ("tfi", {"max_isi": 30_000}, ["max_isi", "30000", "1..20000"]),
         ("csr", {"T": 10**9}, ["T=", "2..20000"]),
-        ("tfstp", {"warmup": 100_000}, ["warmup", "1..4000"]),
+        ("tfstp", {"warmup": 100_000}, ["warmup", "1..3200"]),
         ("cfsr", {"mog_ratio": 1.5}, ["mog_ratio", "1.5", "0..1"]),
         ("cfsr", {"tfp_mode": "sideways"}, ["tfp_mode", "sideways", "trailing"]),
         ("cfsr", {"adaptive": 2}, ["adaptive", "true|false"]),

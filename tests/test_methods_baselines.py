@@ -10,7 +10,7 @@ import pytest
 import cfsr
 from cfsr.methods.snm import graph_cut_labels, motion_confidence
 from cfsr.methods.tfa import adaptive_rate
-from cfsr.methods.tfstp import stp_rate
+from cfsr.methods.tfstp import state_grid, state_start, stp_rate
 
 
 def periodic(period, t=600, h=2, w=3, phase=0):
@@ -81,9 +81,38 @@ def test_tfstp_parameter_checks_and_sparse_pixels():
         stp_rate(periodic(3), 100, u0=1.5)
     z = np.zeros((50, 2, 2), np.uint8)
     z[10, 0, 0] = 1
+    # warm-up 40: the state starts on a 10-step grid at least 40 steps before t, here step 0
     r = stp_rate(z, 49, warmup=40)
-    assert np.isfinite(r).all() and r[0, 0] == pytest.approx(1 / 41)  # 1 spike in 41 steps
+    assert np.isfinite(r).all() and r[0, 0] == pytest.approx(1 / 50)  # 1 spike in 50 steps
     assert (r[1:, :] == 0).all()
+    # the same window cut from a recording at an absolute step: the grid is absolute
+    assert stp_rate(z[9:], 40, warmup=40, start=9)[0, 0] == pytest.approx(1 / 41)  # from 9
+    assert stp_rate(z[5:], 44, warmup=40, start=5)[0, 0] == pytest.approx(1 / 45)  # from 5
+
+
+@pytest.mark.parametrize("warmup", [1, 7, 40, 400])
+def test_tfstp_state_starts_on_an_absolute_grid(warmup):
+    g = state_grid(warmup)
+    assert g == -(-warmup // 4)
+    for t in range(0, 3 * warmup + 5):
+        s0 = state_start(t, warmup)
+        assert s0 % g == 0 or s0 == 0
+        assert t - warmup - g < s0 <= max(0, t - warmup)
+
+
+def test_tfstp_dense_outputs_share_one_state_with_identical_results():
+    """Outputs one step apart continue the state (memo) and equal isolated outputs."""
+    rng = np.random.default_rng(5)
+    s = (rng.random((700, 6, 9)) < rng.uniform(0.02, 0.6, (6, 9))).astype(np.uint8)
+    memo: dict = {}
+    for t in [399, 400, 401, 450, 450, 499, 500, 650, 420, 699]:  # forward, repeats, back
+        dense = stp_rate(s, t, memo=memo)
+        np.testing.assert_array_equal(dense, stp_rate(s, t))
+    # through the library: one reconstruct call over dense times keeps a memo
+    times = list(range(600, 700))
+    whole = cfsr.reconstruct(s, "tfstp", times)
+    for i in (0, 37, 99):
+        np.testing.assert_array_equal(whole[i], cfsr.reconstruct(s, "tfstp", [times[i]])[0])
 
 
 # --------------------------------------------------------------------------- SNM

@@ -283,15 +283,19 @@ def _acquisition(args: argparse.Namespace) -> dict[str, Any]:
 #: Methods whose cost is measured at 1 and 2 threads (issue 14: scaling stated, not guessed).
 SCALING_METHODS = ("tfp", "csr", "cfsr")
 
+#: Dense output (method, stride in steps, frames): outputs closer than the method's window,
+#: as a slow-motion reconstruction asks for them (issue 14: dense output shares work).
+DENSE_OUTPUTS = (("tfstp", 1, 200), ("cfsr", 32, 8))
+
 
 def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
-    from cfsr.bench import method_fps, method_scaling, streaming_state_rtf
+    from cfsr.bench import dense_output, method_fps, method_scaling, streaming_state_rtf
     from cfsr.methods import methods
 
     steps = 2048 if args.quick else 4096
     bar.set_description("simulating")
     packed, layout = _demo_packed(steps)
-    bar.reset(total=2 + len(methods()) + len(SCALING_METHODS))
+    bar.reset(total=2 + len(methods()) + len(SCALING_METHODS) + len(DENSE_OUTPUTS))
     bar.set_description("streaming state")
     rtf = {"streaming_state": streaming_state_rtf(packed, layout)}
     bar.update()
@@ -317,10 +321,19 @@ def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
         scaling[name] = method_scaling(
             packed, layout, name, threads=(1, 2), min_time=0.3 if args.quick else 1.0
         )
+        bar.update()
+    dense: dict[str, Any] = {}
+    for name, stride, count in DENSE_OUTPUTS:
+        bar.set_description(f"dense {name}")
+        dense[name] = dense_output(
+            packed, layout, name, stride=stride, count=count, min_time=0.3 if args.quick else 1.0
+        )
+        bar.update()
     return {
         "realtime_factor": rtf,
         "fps": fps,
         "scaling": scaling,
+        "dense": dense,
         "acquisition": acq,
         "methods": detail,
         "goals": GOALS,
@@ -368,6 +381,14 @@ def _print_throughput(res: dict[str, Any]) -> None:
                 f"  p = {p:.2f}, {pred[8]:.1f}x / {pred[16]:.1f}x" if p is not None else ""
             )
             print(f"    {k:6s} {ms}{extra}")
+    dense = res.get("dense", {})
+    if dense:
+        print("  dense output (one stream, outputs `stride` steps apart) against isolated frames:")
+        for k, d in dense.items():
+            print(
+                f"    {k:6s} stride {d['stride']:3d}: {d['ms_per_frame']:7.2f} ms/frame,"
+                f" isolated {d['isolated_ms_per_frame']:7.2f} ({d['speedup']:.1f}x)"
+            )
 
 
 # --------------------------------------------------------------------------- CLI

@@ -11,7 +11,7 @@ streaming path (:class:`cfsr.StreamingReconstructor`) give identical numbers by 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -205,6 +205,14 @@ class Method:
         ``(packed_window, layout, center, start_step, params) -> Output``: the same result as
         ``compute`` computed straight from packed frames (no unpacking). When present, the
         library and the streaming reconstructor use it; tests check both agree exactly.
+    recurrent : bool
+        The method keeps a state over steps (TFSTP's synapses). Its ``compute`` and
+        ``compute_packed`` take a keyword ``memo``: a dict the caller keeps for one stream
+        (:class:`~cfsr.streaming.StreamingReconstructor`, one ``reconstruct`` call), in which
+        outputs close together continue a state instead of rebuilding it. The result is the
+        same with or without it.
+    max_window : int, optional
+        Most steps ``before + after`` (default: see :attr:`max_span`).
     """
 
     name: str
@@ -216,23 +224,36 @@ class Method:
     presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     reference: str = ""
     compute_packed: PackedComputeFn | None = None
+    recurrent: bool = False
+    max_window: int | None = None
 
     def run_window(
-        self, recording_like: Any, a: int, b: int, t: int, params: Mapping[str, Any]
+        self,
+        recording_like: Any,
+        a: int,
+        b: int,
+        t: int,
+        params: Mapping[str, Any],
+        memo: MutableMapping[str, Any] | None = None,
     ) -> Output:
         """Compute step ``t`` from frames ``[a, b)`` of anything with ``packed(a, b)``,
-        ``frames(a, b)`` and ``layout`` (a SpikeRecording or the streaming buffer)."""
+        ``frames(a, b)`` and ``layout`` (a SpikeRecording or the streaming buffer).
+
+        ``memo`` reaches recurrent methods only (see ``recurrent``)."""
+        kw = {"memo": memo} if self.recurrent else {}
         if self.compute_packed is not None:
             return self.compute_packed(
-                recording_like.packed(a, b), recording_like.layout, t - a, a, params
+                recording_like.packed(a, b), recording_like.layout, t - a, a, params, **kw
             )
-        return self.compute(recording_like.frames(a, b), t - a, a, params)
+        return self.compute(recording_like.frames(a, b), t - a, a, params, **kw)
 
     @property
     def max_span(self) -> int:
-        """Most steps ``before + after`` a parameter set may ask for (see
-        :data:`MAX_WINDOW_STEPS`; methods that unpack their window get
-        :data:`MAX_UNPACKED_STEPS`)."""
+        """Most steps ``before + after`` a parameter set may ask for: ``max_window`` when
+        set, else :data:`MAX_WINDOW_STEPS`, or :data:`MAX_UNPACKED_STEPS` for methods that
+        unpack their window (no ``compute_packed``)."""
+        if self.max_window is not None:
+            return self.max_window
         return MAX_WINDOW_STEPS if self.compute_packed is not None else MAX_UNPACKED_STEPS
 
     def describe(self) -> dict[str, Any]:
