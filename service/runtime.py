@@ -20,6 +20,7 @@ from driver.acquisition import Acquisition
 from driver.source import ReplayControl, Source
 from service.catalog import SourceCatalog
 from service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
+from service.kernels import KernelWarmup
 from service.settings import RECORDING_NAME_RE, Settings, SourceSpec
 from service.status import (
     Drops,
@@ -79,6 +80,7 @@ class Runtime:
         self._sampler_stop = threading.Event()
         self._sampler: threading.Thread | None = None
         self._stopped = False
+        self.kernels = KernelWarmup()
 
     # -- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -98,6 +100,8 @@ class Runtime:
             )
             assert self.ring is not None
             self.worker.start(str(self.ring.path), self.source.info.layout)
+            if self.settings.warmup:  # a first start compiles every method in the background
+                self.kernels.start(first=self.config.method.method)
         except BaseException:
             # a start that fails half-way leaves no segment, thread or worker behind
             self.stop()
@@ -112,6 +116,7 @@ class Runtime:
             if self._stopped:
                 return
             self._stopped = True
+            self.kernels.stop()
             if self.recorder is not None:
                 self.last_recording = self.recorder.stop()
                 self.recorder = None
@@ -399,6 +404,7 @@ class Runtime:
             ring=ring_status(self.ring, self._frames_base, rate_hz),
             clients=len(frames.clients),
             recording=recording,
+            kernels=self.kernels.status(),
         )
 
     @property

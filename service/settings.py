@@ -102,6 +102,9 @@ class Settings:
     #: extra browser origins (besides the service's own) allowed to open /ws or change state
     allowed_origins: list[str] = field(default_factory=list)
     demo_steps: int = int(os.environ.get("CFSR_DEMO_STEPS", "6000"))
+    #: compile every method's kernels in a background process when they are not cached yet
+    #: (``cfsr serve`` turns it on unless ``--no-warmup``; service.kernels)
+    warmup: bool = False
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).expanduser()

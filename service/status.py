@@ -29,6 +29,8 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, Field
 
+from service.kernels import KernelStatus
+
 if TYPE_CHECKING:
     from driver.acquisition import Acquisition
     from driver.source import Source
@@ -296,3 +298,7 @@ class StatusModel(BaseModel):
     ring: RingStatus
     clients: int
     recording: RecordStatus
+    kernels: KernelStatus = Field(
+        default_factory=KernelStatus,
+        description="the background compilation of the reconstruction kernels on a first start",
+    )

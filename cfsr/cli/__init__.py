@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("cfsr.cli.evaluate", "PSNR/SSIM table of methods on scenes with ground truth"),
     "methods": ("cfsr.cli.methods", "list reconstruction methods and their parameters"),
     "bench": ("cfsr.cli.bench", "benchmark run time against error, and throughput"),
+    "warmup": ("cfsr.cli.warmup", "compile the reconstruction kernels now (once per install)"),
 }
 
 #: entry-point group through which other layers add commands

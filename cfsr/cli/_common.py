@@ -130,7 +130,7 @@ def first_frame_notice(bar, what: str, *, after: float = 3.0, enabled: bool = Tr
             bar.write(
                 f"{what}: the first frame is still running after {after:g} s: numba compiles "
                 f"the kernels on first use on this machine (cached in {jit_cache_location()}); "
-                "later runs start at once",
+                "later runs start at once ('cfsr warmup' compiles every method ahead)",
                 file=sys.stderr,
             )
 

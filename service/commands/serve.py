@@ -89,6 +89,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="paced: real-time schedule (default); fast: deterministic, as fast as "
                    "the worker consumes (tests)")
     p.add_argument("--log-level", default="warning", help="uvicorn log level")
+    p.add_argument("--no-warmup", action="store_true",
+                   help="do not compile the methods' kernels in the background on a first start "
+                        "(otherwise a low-priority 'cfsr warmup' runs once, so switching to CSR "
+                        "or CFSR later does not wait on the compiler; also CFSR_WARMUP=0)")
     p.add_argument("--test-hooks", action="store_true", help=argparse.SUPPRESS)
 
 
@@ -120,6 +124,7 @@ def build_settings(args: argparse.Namespace):
         max_fps=args.max_fps,
         ring_seconds=args.ring_seconds,
         test_hooks=args.test_hooks,
+        warmup=not args.no_warmup,
         allowed_hosts=list(args.allow_host),
         allowed_origins=list(args.allow_origin),
     )
@@ -223,6 +228,9 @@ def run(args: argparse.Namespace) -> int:
         rt.stop()
         print(f"cfsr serve: error: could not start: {exc}", file=sys.stderr)
         return 2
+    if rt.kernels.status().state == "compiling":
+        say("first start here: compiling the methods' kernels in the background at low "
+            "priority (a few minutes; progress in the viewer, 'kernels' in /api/status)")
     app = create_app(settings, runtime=rt)
     host = settings.host
     shown = f"[{host}]" if ":" in host else host

@@ -364,6 +364,13 @@
   const big = (x) => (x === null || x === undefined) ? "-" : Math.round(x).toLocaleString("en-US");
   // worker skips are by design (it only needs the newest window), so they are not shown as errors
   function setDrop(id, v, neutral) { const el = $(id); el.textContent = big(v); el.classList.toggle("nonzero", v > 0 && !neutral); }
+  // the background compilation of a first start (service/kernels.py): which methods are ready
+  function kernelNote(k) {
+    if (!k || k.state !== "compiling") return k && k.state === "failed" ? "; kernel warm-up failed: " + k.error : "";
+    const n = k.ready.length + k.pending.length;
+    return "; compiling kernels in the background (" + k.ready.length + "/" + n + " methods ready"
+      + (k.pending.length ? ", now " + k.pending[0] : "") + ", " + Math.round(k.elapsed_s || 0) + " s)";
+  }
   async function pollStatus() {
     try {
       const s = await api("/api/status");
@@ -378,7 +385,8 @@
         + (s.worker.first_frame_s > 3
           ? "; first " + s.method + " frame for " + Math.round(s.worker.first_frame_s)
             + " s: numba compiles the kernels on first use on this machine (once, cached)"
-          : "");
+          : "")
+        + kernelNote(s.kernels);
       setDrop("drop-usb", s.drops.usb); setDrop("drop-replay", s.drops.replay);
       setDrop("drop-ring", s.drops.ring); setDrop("drop-worker", s.drops.worker, true);
       setDrop("drop-clients", s.drops.clients); setDrop("drop-recorder", s.drops.recorder);

@@ -1,0 +1,60 @@
+"""``cfsr warmup``: compile the reconstruction kernels now, not at the first frame."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "numba compiles each method's kernels the first time the method runs on a machine "
+        "(for CSR and CFSR most of a minute) and caches them on disk; run this once after "
+        "installing (or after an upgrade) so the first frame of 'cfsr reconstruct' or of the "
+        "viewer does not wait. 'cfsr serve' does the same in the background on its first start."
+    )
+    p.add_argument(
+        "--methods",
+        "-m",
+        help="comma-separated methods (default: all, CSR and CFSR first)",
+    )
+    p.add_argument(
+        "--lines",
+        action="store_true",
+        help="one line per method on stdout ('NAME SECONDS'), for programs that follow it",
+    )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from cfsr.cli._common import jit_cache_location
+    from cfsr.methods import get_method
+    from cfsr.methods import methods as registered
+    from cfsr.warmup import warm_up
+
+    names = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
+    try:  # names checked before any work, so a typo is one line
+        names = None if names is None else [get_method(m).name for m in names]
+    except ValueError as exc:
+        print(f"cfsr warmup: error: {exc}", file=sys.stderr)
+        return 2
+    total = len(names) if names else len(registered())
+    bar = tqdm(total=total, unit="method", disable=args.quiet or args.lines, file=sys.stderr)
+
+    def step(name: str, seconds: float) -> None:
+        if args.lines:
+            print(f"{name} {seconds:.3f}", flush=True)
+        bar.set_postfix_str(f"{name} {seconds:.1f} s")
+        bar.update()
+
+    bar.set_description("compiling kernels")
+    try:
+        took = warm_up(names, progress=step)
+    finally:
+        bar.close()
+    if not args.lines and not args.quiet:
+        print(f"cfsr warmup: {len(took)} method(s) ready in {sum(took.values()):.1f} s "
+              f"(cached in {jit_cache_location()})", file=sys.stderr)
+    return 0

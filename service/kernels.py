@@ -1,0 +1,150 @@
+"""Kernel warm-up in the background: a first ``cfsr serve`` compiles every method's kernels.
+
+On a fresh install numba compiles a method's kernels when the worker first runs it: most of a
+minute for CFSR, during which the viewer shows no frame of it. The server therefore starts
+``cfsr warmup`` (:mod:`cfsr.warmup`) once, in its own process at the lowest CPU priority, so it
+never slows acquisition or the worker's frames, and reports its progress in ``GET /api/status``
+(``kernels``) and the viewer. The kernels land in numba's on-disk cache, from which the worker
+loads them in well under a second when the user switches method. A server whose kernels are
+already cached (the marker of :func:`cfsr.warmup.is_warm`) starts no warm-up.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+__all__ = ["KernelWarmup", "KernelStatus", "warmup_enabled"]
+
+#: ``CFSR_WARMUP=0`` turns the background warm-up off (the test suite does, except where it
+#: tests it, so that each server it starts does not compile in the background)
+ENV = "CFSR_WARMUP"
+
+State = Literal["off", "ready", "compiling", "done", "stopped", "failed"]
+
+
+def warmup_enabled() -> bool:
+    return os.environ.get(ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+class KernelStatus(BaseModel):
+    """Where the background compilation of the reconstruction kernels stands."""
+
+    state: State = Field(
+        "off",
+        description="off: not run (disabled); ready: the kernels were cached already; "
+        "compiling: in progress; done: finished; stopped: the server stopped it; failed: it "
+        "ended with an error",
+    )
+    ready: list[str] = Field(default_factory=list, description="methods compiled so far")
+    pending: list[str] = Field(default_factory=list, description="methods still to compile")
+    elapsed_s: float | None = Field(None, description="seconds since the warm-up started")
+    pid: int | None = Field(None, description="the warm-up process while it runs")
+    error: str | None = None
+
+
+def _child_setup() -> None:  # pragma: no cover - runs in the child before exec
+    """Lowest CPU priority, and (Linux) end with the server even when it is killed."""
+    os.nice(19)
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+class KernelWarmup:
+    """One background ``cfsr warmup --lines`` process and what it has reported."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._proc: subprocess.Popen[str] | None = None
+        self._reader: threading.Thread | None = None
+        self._status = KernelStatus()
+        self._t0 = 0.0
+
+    def start(self, first: str | None = None, methods: list[str] | None = None) -> None:
+        """Start compiling in the background unless the kernels are cached (or it is
+        disabled); ``first``: the method to compile first (the one the worker runs);
+        ``methods``: which (default: all, in :data:`cfsr.warmup.WARM_ORDER`)."""
+        from cfsr.methods import methods as registered
+        from cfsr.warmup import WARM_ORDER, is_warm
+
+        if not warmup_enabled():
+            return
+        known = list(registered())
+        if is_warm():
+            self._status = KernelStatus(state="ready", ready=known)
+            return
+        order = [m for m in WARM_ORDER if m in known] + [m for m in known if m not in WARM_ORDER]
+        if methods is not None:
+            order = [m for m in order if m in methods]
+        if first in order:
+            order.remove(first)
+            order.insert(0, first)
+        cmd = [sys.executable, "-m", "cfsr", "warmup", "--lines", "--methods", ",".join(order)]
+        self._t0 = time.monotonic()
+        self._status = KernelStatus(state="compiling", pending=order, elapsed_s=0.0)
+        self._proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            stdin=subprocess.DEVNULL,
+            text=True,
+            preexec_fn=_child_setup,
+        )
+        self._reader = threading.Thread(target=self._follow, name="cfsr-warmup", daemon=True)
+        self._reader.start()
+
+    def _follow(self) -> None:
+        proc = self._proc
+        assert proc is not None and proc.stdout is not None
+        for line in proc.stdout:
+            name = line.split(" ", 1)[0].strip()
+            with self._lock:
+                st = self._status
+                if name in st.pending:
+                    st.pending.remove(name)
+                    st.ready.append(name)
+        err = proc.stderr.read() if proc.stderr is not None else ""
+        code = proc.wait()
+        with self._lock:
+            st = self._status
+            st.elapsed_s = time.monotonic() - self._t0
+            if code == 0 and not st.pending:
+                st.state = "done"
+            elif st.state == "compiling":
+                st.state = "failed"
+                last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:]
+                st.error = f"exit status {code}" + (f": {last[0]}" if last else "")
+
+    def status(self) -> KernelStatus:
+        with self._lock:
+            st = self._status.model_copy(deep=True)
+        if st.state == "compiling":
+            st.elapsed_s = time.monotonic() - self._t0
+            st.pid = self._proc.pid if self._proc is not None else None
+        return st
+
+    def stop(self) -> None:
+        """Stop a warm-up still running (what it compiled stays cached)."""
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            with self._lock:
+                self._status.state = "stopped"
+            proc.terminate()
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if self._reader is not None:
+            self._reader.join(timeout=5)

@@ -1,0 +1,150 @@
+"""Kernel warm-up: ``cfsr warmup`` and the background compilation of a first ``cfsr serve``
+(issue 14 item 6: a fresh install's first CSR/CFSR frame should not wait on the compiler)."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+from livehelpers import wait_until
+
+import cfsr
+from cfsr import warmup
+from service.kernels import KernelWarmup
+
+# the package, not the function cfsr.methods() that shadows it as an attribute of cfsr
+REGISTRY = importlib.import_module("cfsr.methods")
+
+
+def _cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "cfsr", "warmup", *args],
+        capture_output=True, text=True, timeout=600, env={**os.environ, **(env or {})},
+    )
+
+
+def test_warm_up_runs_each_method_and_marks_a_complete_warm_up(tmp_path, monkeypatch):
+    # two registered methods only, and the marker in tmp_path: a complete warm-up of them
+    real = REGISTRY.methods()
+    monkeypatch.setattr(REGISTRY, "methods", lambda: {k: real[k] for k in ("tfi", "tfp")})
+    marker = tmp_path / "cfsr-warm-x"
+    monkeypatch.setattr(warmup, "marker_path", lambda: marker)
+    seen = []
+    took = warmup.warm_up(progress=lambda name, s: seen.append(name))
+    assert list(took) == seen == ["tfi", "tfp"] and all(s > 0 for s in took.values())
+    assert marker.exists() and "tfi=" in marker.read_text()
+    assert warmup.is_warm()
+    marker.unlink()
+    warmup.warm_up(["tfi"])  # a partial warm-up is not a warm machine
+    assert not marker.exists() and not warmup.is_warm()
+
+
+def test_marker_follows_the_code(monkeypatch):
+    a = warmup._fingerprint()
+    assert a == warmup._fingerprint()
+    monkeypatch.setattr(cfsr, "__version__", "0+other", raising=False)
+    assert warmup._fingerprint() != a  # another version (or changed sources): not warm
+
+
+def test_cli_lines_and_errors():
+    r = _cli("--lines", "--methods", "tfp,tfi")
+    assert r.returncode == 0, r.stderr
+    names = [ln.split()[0] for ln in r.stdout.splitlines()]
+    assert names == ["tfp", "tfi"]
+    assert all(float(ln.split()[1]) >= 0 for ln in r.stdout.splitlines())
+    bad = _cli("--methods", "nope")
+    assert bad.returncode == 2 and "unknown method 'nope'" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1
+    assert "once per install" in subprocess.run(
+        [sys.executable, "-m", "cfsr", "--help"], capture_output=True, text=True
+    ).stdout
+
+
+def test_background_warm_up_reports_progress_and_finishes(monkeypatch):
+    monkeypatch.setenv("CFSR_WARMUP", "1")
+    monkeypatch.setattr(warmup, "is_warm", lambda: False)
+    k = KernelWarmup()
+    k.start(first="tfi", methods=["tfp", "tfi"])
+    st = k.status()
+    assert st.state == "compiling" and st.pending == ["tfi", "tfp"]  # the worker's method first
+    try:
+        wait_until(lambda: k.status().state != "compiling", timeout=300, what="warm-up to end")
+    finally:
+        k.stop()
+    st = k.status()
+    assert st.state == "done", st
+    assert st.ready == ["tfi", "tfp"] and st.pending == [] and st.elapsed_s > 0
+
+
+def test_background_warm_up_runs_at_lowest_priority_and_stops_with_the_server(
+    tmp_path, monkeypatch
+):
+    monkeypatch.setenv("CFSR_WARMUP", "1")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))  # nothing cached: CFSR compiles
+    monkeypatch.setattr(warmup, "is_warm", lambda: False)
+    k = KernelWarmup()
+    k.start(methods=["cfsr"])
+    proc = k._proc
+    assert proc is not None
+    try:
+        assert os.getpriority(os.PRIO_PROCESS, proc.pid) == 19
+        time.sleep(0.5)
+        assert proc.poll() is None and k.status().state == "compiling"
+    finally:
+        k.stop()
+    assert proc.poll() is not None and k.status().state == "stopped"
+
+
+def test_cached_kernels_or_disabled_warm_up_start_nothing(monkeypatch):
+    monkeypatch.setenv("CFSR_WARMUP", "1")
+    monkeypatch.setattr(warmup, "is_warm", lambda: True)
+    k = KernelWarmup()
+    k.start()
+    assert k._proc is None and k.status().state == "ready"
+    assert set(k.status().ready) == set(REGISTRY.methods())
+    monkeypatch.setenv("CFSR_WARMUP", "0")
+    k = KernelWarmup()
+    k.start()
+    assert k._proc is None and k.status().state == "off"
+
+
+def test_warm_up_compiles_what_a_real_frame_uses(tmp_path):
+    """After a warm-up on its small scene, a fresh process's first frame of a 400 x 250 file
+    finds every kernel cached: numba compiles nothing more (its cache folder gains no file)."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    assert _cli("--lines", "--methods", "tfa", env=env).returncode == 0
+    before = sorted(p.name for p in (tmp_path / "cache").rglob("*"))
+    rng = np.random.default_rng(0)
+    spikes = (rng.random((600, 250, 400)) < 0.2).astype(np.uint8)
+    cfsr.write_dat(tmp_path / "r.dat", spikes)
+    r = subprocess.run(
+        [sys.executable, "-m", "cfsr", "reconstruct", str(tmp_path / "r.dat"), "-m", "tfa",
+         "-t", "300", "--out", str(tmp_path / "o"), "-q"],
+        capture_output=True, text=True, timeout=600, env={**os.environ, **env},
+    )
+    assert r.returncode == 0, r.stderr
+    after = sorted(p.name for p in (tmp_path / "cache").rglob("*"))
+    assert after == before
+
+
+def test_first_serve_compiles_in_the_background_and_stops_it_with_the_server(tmp_path):
+    """A server with nothing cached starts the warm-up, says so, reports it in /api/status,
+    and leaves no warm-up process behind when it stops."""
+    from livehelpers import LiveServer, write_pattern
+
+    rec = write_pattern(tmp_path / "p.dat", 2048)
+    env = {"CFSR_WARMUP": "1", "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    srv = LiveServer(["--replay", str(rec), "--data-dir", str(tmp_path / "d")], env=env).start()
+    try:
+        st = srv.wait_for(lambda s: s["kernels"]["pid"], 60, "a warm-up process")["kernels"]
+        assert st["state"] == "compiling" and st["pending"][0] == "tfp"  # the worker's first
+        pid = st["pid"]
+        assert os.getpriority(os.PRIO_PROCESS, pid) == 19
+        assert "compiling the methods' kernels in the background" in srv.output()
+    finally:
+        srv.stop()
+    wait_until(lambda: not os.path.exists(f"/proc/{pid}"), 10, "the warm-up process to end")
