@@ -235,12 +235,26 @@ def stp_rate(
         Kept by the caller between calls on one stream: dense outputs continue one state.
     """
     n, h, w = spikes.shape
+    c = _constants(u0, D, F, f)
+    window = lambda a, b: spikes[a - start : b - start]  # noqa: E731 - absolute steps
+    return _at(window, (n, h, w), center, start, warmup, c, memo)
+
+
+def _at(
+    frames: FramesFn,
+    shape: tuple[int, int, int],
+    center: int,
+    start: int,
+    warmup: int,
+    c: _Stp,
+    memo: MutableMapping[str, Any] | None,
+) -> np.ndarray:
+    """TFSTP at index ``center`` of an ``(n, H, W)`` window whose first step is ``start``."""
+    n, h, w = shape
     if not 0 <= center < n:
         raise ValueError(f"center {center} outside window of {n} steps")
-    c = _constants(u0, D, F, f)
     t = int(start) + int(center)
-    s0 = state_start(t, warmup, first=int(start))
-    return _rate(lambda a, b: spikes[a - start : b - start], (h, w), t, s0, c, memo)
+    return _rate(frames, (h, w), t, state_start(t, warmup, first=int(start)), c, memo)
 
 
 def _params(p: Mapping[str, Any]) -> dict[str, Any]:
@@ -267,10 +281,7 @@ def _compute_packed(
 ) -> Output:
     """As :func:`_compute`, unpacking only the frames the state has not folded in yet."""
     packed = np.asarray(packed)
-    if not 0 <= center < packed.shape[0]:
-        raise ValueError(f"center {center} outside window of {packed.shape[0]} steps")
     c = _constants(p["u0"], p["D"], p["F"], p["f"])
-    t = int(start) + int(center)
 
     def frames(a: int, b: int) -> np.ndarray:
         return unpack_frames(
@@ -282,8 +293,8 @@ def _compute_packed(
             fliplr=layout.fliplr,
         )
 
-    s0 = state_start(t, p["warmup"], first=int(start))
-    return Output(_rate(frames, (layout.height, layout.width), t, s0, c, memo))
+    shape = (packed.shape[0], layout.height, layout.width)
+    return Output(_at(frames, shape, center, start, p["warmup"], c, memo))
 
 
 def _window(p: Mapping[str, Any]) -> tuple[int, int]:
