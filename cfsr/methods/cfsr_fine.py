@@ -53,6 +53,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from cfsr._isi import search_range
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
@@ -404,7 +405,8 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
                     tfp[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
                 elif isi_est[j]:  # fewer than two spikes in the span: the TFI at its step
                     e = cents[j]
-                    iv = isi_in_words(words, r, lo, e, max(0, e - m), min(n_all, e + m + 1))
+                    e_lo, e_hi = search_range(e, m, n_all)
+                    iv = isi_in_words(words, r, lo, e, e_lo, e_hi)
                     tfp[j, y, x] = np.float32(1.0 / iv)
                 else:
                     tfp[j, y, x] = np.float32(cnt / lens[j])
@@ -435,7 +437,8 @@ def _dynamic_kernel(src, wins, kept, ub, counts, isi):  # pragma: no cover - num
             r = base + step * x
             for k in range(k_count):
                 e = ends[k]
-                isi[k, y, x] = isi_in_words(words, r, lo, e, max(0, e - m), min(n, e + m + 1))
+                e_lo, e_hi = search_range(e, m, n)
+                isi[k, y, x] = isi_in_words(words, r, lo, e, e_lo, e_hi)
             if ub[y, x] < theta:
                 for k in range(k_count):
                     counts[k, y, x] = ub[y, x]
@@ -554,7 +557,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
 def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
     """TFI rate (Eq. 3) at ``center`` on the whole frame, from the packed window."""
     n = src.n
-    a, b = max(0, center - m), min(n, center + m + 1)
+    a, b = search_range(center, m, n)
     isi = np.empty((1, src.h, src.w), np.int32)
     _dynamic_kernel(
         _Words(src.packed, src.geo, a, b),

@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._words import ROW_PAD, geometry, leading_zeros, popcount, row_words, trailing_zeros
-from cfsr.methods._spiketimes import pixel_times, row_slab
+from cfsr.methods._spiketimes import pixel_times, row_gather
 
 __all__ = [
     "distinct_isi_counts",
@@ -80,8 +80,7 @@ def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
     length = max(0, hi - lo)
     for y in prange(h):
         # copy the row's time slab once: the per-pixel scans below then stay in cache
-        slab = row_slab(spikes, lo, length, y)
-        times = np.empty(length + 1, np.int64)
+        slab, times = row_gather(spikes, lo, length, y)
         hist = np.zeros(span + 1, np.int32)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)

@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from cfsr._isi import isi_from_times
+from cfsr._isi import isi_from_times, search_range
 from cfsr._words import ROW_PAD, PackedWindow, popcount, row_words, word_spikes
 from cfsr.methods.tfa import grow_span
 
@@ -100,7 +100,8 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     one = np.uint64(1)
     for kk in range(kc):
         cc = centers[kk]
-        for j, t in enumerate((cc + 1, max(0, cc - m), min(n, cc + m + 1))):
+        c_lo, c_hi = search_range(cc, m, n)
+        for j, t in enumerate((cc + 1, c_lo, c_hi)):
             qs[kk, j] = (t - lo) >> _WORD_SHIFT
             ms[kk, j] = (one << np.uint64((t - lo) & _WORD_MASK)) - one
     q_ip = qs[:, 0].copy()
