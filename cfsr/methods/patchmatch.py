@@ -370,6 +370,63 @@ def _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search):  # pragma: no c
                 box[o] = qx - x
 
 
+@njit(cache=True, inline="always")
+def _predicted(off, src, wt, p0, p1, cand):  # pragma: no cover - numba
+    """Write into ``cand`` the offsets one target's predictions (``src``, ``wt``: its rows of
+    :class:`_Plan`) give the block's two end pixels ``p0`` and ``p1 - 1``; how many.
+
+    Motion is smooth across BLOCK columns, so the ends bracket the pixels between them, and
+    propagation and the local search cover the rest (every pixel's own prediction: 1.4x the
+    work for the same PSNR within 0.04 dB on disk/fan/car); ends whose sources match predict
+    alike.
+    """
+    nc = 0
+    last = max(1, p1 - p0 - 1)
+    for c in range(src.shape[0]):
+        s0 = src[c, 0]
+        if s0 < 0:
+            break
+        s1 = src[c, 1]
+        w0 = wt[c, 0]
+        w1 = wt[c, 1]
+        ay = np.int64(_NO_OFFSET)
+        ax = ay
+        by = ay
+        bx = ay
+        for k in range(p0, p1, last):
+            ky = np.int64(off[s0, k, 0])
+            kx = np.int64(off[s0, k, 1])
+            ly = np.int64(0)
+            lx = np.int64(0)
+            if s1 >= 0:
+                ly = np.int64(off[s1, k, 0])
+                lx = np.int64(off[s1, k, 1])
+            if ky == ay and kx == ax and ly == by and lx == bx:
+                continue
+            ay = ky
+            ax = kx
+            by = ly
+            bx = lx
+            py = w0 * ky + w1 * ly
+            px = w0 * kx + w1 * lx
+            cy = np.int64(np.floor(py + 0.5))
+            cx = np.int64(np.floor(px + 0.5))
+            nc = _add_cand(cand, nc, cy, cx)
+    return nc
+
+
+@njit(cache=True, inline="always")
+def _block_bests(cand, xs, p0, p1, boy, box):  # pragma: no cover - numba
+    """Write into ``cand`` the distinct best offsets (lanes ``boy``, ``box``) of the block's
+    pixels ``p0 .. p1-1``; how many."""
+    xb = xs[p0]
+    nb = 0
+    for k in range(p0, p1):
+        o = xs[k] - xb
+        nb = _add_cand(cand, nb, boy[o], box[o])
+    return nb
+
+
 @njit(parallel=True, cache=True)
 def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
     # pragma: no cover - numba
@@ -381,7 +438,6 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
     seed = search.seed
     h = targets.shape[1] - patch + 1
     w = targets.shape[2] - (patch - 1) - _EXTRA
-    n_c = src.shape[1]
     # bands of rows are independent (propagation stays inside a band), so they run in parallel
     # with a result that does not depend on the number of threads; inside a band the targets
     # run in ``order`` because each is initialised from those before it
@@ -426,43 +482,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                     nc = 0
                     if it == 0:
                         if predicted:
-                            # the predicted offsets of the block's two end pixels: motion is
-                            # smooth across BLOCK columns, so the ends bracket the pixels
-                            # between them, and propagation and the local search cover the rest
-                            # (every pixel's own prediction: 1.4x the work for the same PSNR
-                            # within 0.04 dB on disk/fan/car); ends whose sources match predict
-                            # alike
-                            last = max(1, p1 - p0 - 1)
-                            for c in range(n_c):
-                                s0 = src[i, c, 0]
-                                if s0 < 0:
-                                    break
-                                s1 = src[i, c, 1]
-                                w0 = wt[i, c, 0]
-                                w1 = wt[i, c, 1]
-                                ay = np.int64(_NO_OFFSET)
-                                ax = ay
-                                by = ay
-                                bx = ay
-                                for k in range(p0, p1, last):
-                                    ky = np.int64(off[s0, k, 0])
-                                    kx = np.int64(off[s0, k, 1])
-                                    ly = np.int64(0)
-                                    lx = np.int64(0)
-                                    if s1 >= 0:
-                                        ly = np.int64(off[s1, k, 0])
-                                        lx = np.int64(off[s1, k, 1])
-                                    if ky == ay and kx == ax and ly == by and lx == bx:
-                                        continue
-                                    ay = ky
-                                    ax = kx
-                                    by = ly
-                                    bx = lx
-                                    py = w0 * ky + w1 * ly
-                                    px = w0 * kx + w1 * lx
-                                    cy = np.int64(np.floor(py + 0.5))
-                                    cx = np.int64(np.floor(px + 0.5))
-                                    nc = _add_cand(cand, nc, cy, cx)
+                            nc = _predicted(off, src[i], wt[i], p0, p1, cand)
                         else:
                             nc = _add_cand(cand, nc, 0, 0)
                     # propagation: the offsets of the already-visited neighbours in the band
@@ -484,10 +504,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                     # full search around each current best (re-collected at every radius); in
                     # a predicted target's local search around the first two distinct bests
                     # before the search (the draws then do not wait on each other's results)
-                    nb = 0
-                    for k in range(p0, p1):
-                        o = xs[k] - xb
-                        nb = _add_cand(cand, nb, boy[o], box[o])
+                    nb = _block_bests(cand, xs, p0, p1, boy, box)
                     if predicted:
                         nb = min(nb, _NEAR_SEEDS)
                     r = max_r
@@ -499,10 +516,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                             _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search)
                         r //= 2
                         if not predicted:
-                            nb = 0
-                            for k in range(p0, p1):
-                                o = xs[k] - xb
-                                nb = _add_cand(cand, nb, boy[o], box[o])
+                            nb = _block_bests(cand, xs, p0, p1, boy, box)
                     for k in range(p0, p1):
                         o = xs[k] - xb
                         costi[k] = bc[o]
