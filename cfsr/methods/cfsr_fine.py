@@ -59,6 +59,7 @@ from cfsr._words import (
     PackedWindow,
     count_range,
     isi_in_words,
+    n_words,
     next_spike,
     prefix_counts,
     prev_spike,
@@ -78,7 +79,7 @@ from cfsr.methods.csr import (
     uses_steady,
 )
 from cfsr.methods.daisi import daisi_from_times, log_table
-from cfsr.methods.distinction import distinct_in_words
+from cfsr.methods.distinction import distinct_in_words, long_isi_buffer
 from cfsr.methods.masks import fine_mask
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
@@ -379,10 +380,10 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
     lens = np.empty(n_win, np.float64)
     for j in range(n_win):
         lens[j] = max(1, bounds[ib[j]] - bounds[ia[j]])
-    nw = (hi - lo + 63) >> 6
+    nw = n_words(lo, hi)
     for y in prange(h):
         words = store[y]
-        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        big = long_isi_buffer(lo, hi)
         loc = np.empty(2 * dspan + 8, np.int64)
         prefix = np.empty(nw + 1, np.int64)
         before = np.empty(nb, np.int64)
@@ -429,9 +430,9 @@ def _dynamic_kernel(src, wins, kept, ub, counts, isi):  # pragma: no cover - num
     n = packed.shape[0]
     h, w = ub.shape
     k_count = ends.shape[0]
-    nw = (hi - lo + 63) >> 6
+    nw = n_words(lo, hi)
     for y in prange(h):
-        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        big = long_isi_buffer(lo, hi)
         words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
         for x in range(w):
             r = base + step * x
@@ -501,7 +502,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
-    store = _scratch((h, w + ROW_PAD, (hi - lo + 63) >> 6))
+    store = _scratch((h, w + ROW_PAD, n_words(lo, hi)))
     bases = np.empty((h, 2), np.int64)
     _static_kernel(
         _Words(src.packed, src.geo, lo, hi),

@@ -17,7 +17,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cfsr._words import ROW_PAD, geometry, leading_zeros, popcount, row_words, trailing_zeros
+from cfsr._words import (
+    ROW_PAD,
+    WORD_STEPS,
+    geometry,
+    leading_zeros,
+    n_words,
+    popcount,
+    row_words,
+    trailing_zeros,
+)
 from cfsr.methods._spiketimes import pixel_times, row_gather
 
 __all__ = [
@@ -128,6 +137,13 @@ def coarse_masks(spikes: np.ndarray, ends, span: int, theta: int) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
+def long_isi_buffer(lo, hi):  # pragma: no cover - numba
+    """The ``big`` buffer of :func:`distinct_in_words` over steps ``[lo, hi)``: room for its
+    ISIs of a word or more (at most one per :data:`~cfsr._words.WORD_STEPS` steps)."""
+    return np.empty((hi - lo) // WORD_STEPS + 1, np.int64)
+
+
+@njit(cache=True, inline="always")
 def distinct_in_words(words, k, nw, lo, a, b, span, big, cap):  # pragma: no cover - numba
     """Distinct ISI values ``d <= span`` between consecutive spikes that both lie in
     ``[a, b)``, walking word row ``k`` (:mod:`cfsr._words`, first step ``lo``).
@@ -195,10 +211,10 @@ def distinct_in_words(words, k, nw, lo, a, b, span, big, cap):  # pragma: no cov
 def _distinct_words_kernel(packed, geo, lo, hi, span, out):  # pragma: no cover - numba
     """:func:`distinct_in_words` over ``[lo, hi)`` for every pixel, image order."""
     h, w = out.shape
-    nw = (hi - lo + 63) >> 6
+    nw = n_words(lo, hi)
     for y in prange(h):
         words = np.empty((w + ROW_PAD, nw), np.uint64)
-        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        big = long_isi_buffer(lo, hi)
         base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):
             out[y, x] = distinct_in_words(words, base + step * x, nw, lo, lo, hi, span, big, 0)

@@ -20,7 +20,15 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 
 from cfsr._isi import isi_from_times, search_range
-from cfsr._words import ROW_PAD, PackedWindow, popcount, prefix_counts, row_words, word_spikes
+from cfsr._words import (
+    ROW_PAD,
+    PackedWindow,
+    n_words,
+    popcount,
+    prefix_counts,
+    row_words,
+    word_spikes,
+)
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
@@ -92,7 +100,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     n = packed.shape[0]
     kc = centers.shape[0]
     cw = raw.shape[2]
-    nw = (hi - lo + _WORD_MASK) >> _WORD_SHIFT
+    nw = n_words(lo, hi)
     side = max(thr - 1, 0)  # spikes a fast pixel needs beyond each center's interval
     # per center: word and bit mask of the steps c + 1, c_lo and c_hi (ranks = spikes before)
     qs = np.empty((kc, 3), np.int64)
