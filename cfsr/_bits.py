@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["pack_frames", "unpack_frames"]
+__all__ = ["pack_frames", "unpack_frames", "unpack_layout"]
 
 
 @njit(parallel=True, cache=True)
@@ -58,6 +58,19 @@ def unpack_frames(
     if n:
         _unpack_kernel(packed, out, stored_width, flipud, fliplr)
     return out
+
+
+def unpack_layout(packed: np.ndarray, layout) -> np.ndarray:
+    """:func:`unpack_frames` with the geometry and flips of ``layout`` (a
+    :class:`cfsr.layout.Layout`): upright ``(n, height, width)`` uint8 0/1."""
+    return unpack_frames(
+        packed,
+        layout.height,
+        layout.width,
+        stored_width=layout.stored_width,
+        flipud=layout.flipud,
+        fliplr=layout.fliplr,
+    )
 
 
 def pack_frames(frames: np.ndarray, *, flipud: bool = True, fliplr: bool = False) -> np.ndarray:

@@ -9,7 +9,14 @@ from __future__ import annotations
 
 from numba import njit
 
-__all__ = ["tfi_interval", "needs_before", "needs_after", "isi_from_times"]
+__all__ = ["search_range", "tfi_interval", "needs_before", "needs_after", "isi_from_times"]
+
+
+@njit(cache=True, inline="always")
+def search_range(c, m, n):  # pragma: no cover - numba
+    """Steps ``[a, b)`` searched for the spikes around step ``c``: ``m`` steps each side,
+    inside a window of ``n`` steps (the ``max_isi`` reach of Eq. 3)."""
+    return max(0, c - m), min(n, c + m + 1)
 
 
 @njit(cache=True, inline="always")

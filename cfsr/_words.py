@@ -42,6 +42,8 @@ __all__ = [
     "next_spike",
     "range_times",
     "ROW_PAD",
+    "WORD_STEPS",
+    "n_words",
     "row_or_stored",
     "isi_in_words",
     "count_between",
@@ -148,6 +150,16 @@ def transpose64(a):  # pragma: no cover - numba
         m ^= m << np.uint64(j)
 
 
+#: Steps per spike word: one bit each in a uint64.
+WORD_STEPS = 64
+
+
+@njit(cache=True, inline="always")
+def n_words(lo, hi):  # pragma: no cover - numba
+    """Words (:data:`WORD_STEPS` steps each) a pixel needs for steps ``[lo, hi)``."""
+    return (hi - lo + WORD_STEPS - 1) // WORD_STEPS
+
+
 #: Extra word rows per image row that :func:`row_words` may write beyond the row's pixels (a
 #: stored row's head columns and the 64-pixel alignment of its bytes): a row's word buffer
 #: is ``(pixels + ROW_PAD, words)``.
@@ -159,7 +171,7 @@ def row_words(packed, geo, lo, hi, y, x0, x1, words):  # pragma: no cover - numb
     """Words of image pixels ``x0 .. x1-1`` of row ``y`` over steps ``[lo, hi)``.
 
     ``words`` must hold at least ``8 * (bytes covering the pixels) + 64`` rows of
-    ``(hi - lo + 63) // 64`` words. Returns ``(base, step)``: pixel ``x``'s words are
+    :func:`n_words` words. Returns ``(base, step)``: pixel ``x``'s words are
     ``words[base + step * (x - x0)]``.
 
     Blocks of 64 steps x 64 stored pixels (8 bytes of each frame, one unaligned load) are
@@ -173,7 +185,7 @@ def row_words(packed, geo, lo, hi, y, x0, x1, words):  # pragma: no cover - numb
     b0 = min(qa, qb) >> 3
     nbytes = (max(qa, qb) >> 3) - b0 + 1
     fb = packed.shape[1]
-    nw = (hi - lo + 63) // 64
+    nw = n_words(lo, hi)
     a = np.empty(64, np.uint64)
     for q in range(nw):
         t0 = lo + 64 * q
@@ -204,7 +216,7 @@ def row_or_stored(packed, geo, lo, hi, y, w, store, bases):  # pragma: no cover 
     previous whole-frame scan left, ``bases[y]`` their placement), otherwise gathered here."""
     if store.shape[0] > y and bases.shape[0] > y:
         return store[y], bases[y, 0], bases[y, 1]
-    words = np.empty((w + ROW_PAD, (hi - lo + 63) >> 6), np.uint64)
+    words = np.empty((w + ROW_PAD, n_words(lo, hi)), np.uint64)
     base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
     return words, base, step
 

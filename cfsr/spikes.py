@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cfsr._bits import pack_frames, unpack_frames
+from cfsr._bits import pack_frames, unpack_layout
 from cfsr.layout import STEP_RATE_HZ, Layout
 
 __all__ = ["SpikeRecording", "as_recording"]
@@ -79,15 +79,7 @@ class SpikeRecording:
 
     def frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Unpacked upright frames ``start..stop-1`` as ``(n, H, W)`` uint8 0/1."""
-        lay = self.layout
-        return unpack_frames(
-            self.packed(start, stop),
-            lay.height,
-            lay.width,
-            stored_width=lay.stored_width,
-            flipud=lay.flipud,
-            fliplr=lay.fliplr,
-        )
+        return unpack_layout(self.packed(start, stop), self.layout)
 
     def __getitem__(self, key: int | slice) -> np.ndarray:
         if isinstance(key, slice):

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cfsr._bits import unpack_frames
+from cfsr._bits import unpack_layout
 from cfsr.config import MethodConfig
 from cfsr.layout import Layout
 from cfsr.methods.registry import Method, Output
@@ -211,15 +211,7 @@ class StreamingReconstructor:
 
     def frames(self, a: int, b: int) -> np.ndarray:
         """Buffered frames of steps ``[a, b)`` unpacked to upright ``(b - a, H, W)`` uint8."""
-        lay = self.layout
-        return unpack_frames(
-            self.packed(a, b),
-            lay.height,
-            lay.width,
-            stored_width=lay.stored_width,
-            flipud=lay.flipud,
-            fliplr=lay.fliplr,
-        )
+        return unpack_layout(self.packed(a, b), self.layout)
 
     def latest_step(self) -> int | None:
         """Newest step whose full window has arrived, or None."""

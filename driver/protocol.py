@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 __all__ = [
     "MAGIC",
@@ -116,6 +116,8 @@ def _fast_crc32():
 #: implementation installed (module notes)
 payload_crc32, CRC32_IMPL = _fast_crc32()
 
+# Each message's dataclass lists its fields in wire order (``version`` last: it travels in the
+# fixed part): pack_* and parse_* take them in that order, so the order is written once.
 _HDR = struct.Struct("<4sHHQIIHHHHIIIIQI")
 _HDR_CRC = struct.Struct("<I")
 assert _HDR.size == 60
@@ -127,6 +129,8 @@ assert _STATUS.size == 32
 
 @dataclass(frozen=True)
 class BlockHeader:
+    """One block's header; fields in wire order after (magic, version, header bytes)."""
+
     first_index: int
     frame_count: int
     frames_per_block: int
@@ -166,24 +170,8 @@ def block_bytes(frames_per_block: int, frame_bytes: int, packet: int = PACKET_BY
 
 def pack_header(h: BlockHeader) -> bytes:
     """64 header bytes (the caller pads the packet to 1024 bytes with zeros)."""
-    body = _HDR.pack(
-        MAGIC,
-        VERSION,
-        HEADER_BYTES,
-        h.first_index,
-        h.frame_count,
-        h.frames_per_block,
-        h.width,
-        h.height,
-        h.stored_width,
-        h.layout_flags,
-        h.frame_bytes,
-        h.flags,
-        h.block_bytes,
-        h.payload_crc,
-        h.device_dropped,
-        h.sequence & 0xFFFFFFFF,
-    )
+    *head, sequence = astuple(h)[:-1]  # all but version
+    body = _HDR.pack(MAGIC, VERSION, HEADER_BYTES, *head, sequence & 0xFFFFFFFF)
     return body + _HDR_CRC.pack(zlib.crc32(body))
 
 
@@ -199,26 +187,13 @@ def parse_header(buf) -> BlockHeader | None:
     f = _HDR.unpack_from(mv, 0)
     if f[1] != VERSION or f[2] != HEADER_BYTES:
         return None
-    return BlockHeader(
-        first_index=f[3],
-        frame_count=f[4],
-        frames_per_block=f[5],
-        width=f[6],
-        height=f[7],
-        stored_width=f[8],
-        layout_flags=f[9],
-        frame_bytes=f[10],
-        flags=f[11],
-        block_bytes=f[12],
-        payload_crc=f[13],
-        device_dropped=f[14],
-        sequence=f[15],
-        version=f[1],
-    )
+    return BlockHeader(*f[3:], version=f[1])
 
 
 @dataclass(frozen=True)
 class DeviceInfo:
+    """The GET_INFO reply; fields in wire order (a reserved word after ``ep_in``)."""
+
     width: int
     height: int
     stored_width: int
@@ -235,23 +210,9 @@ class DeviceInfo:
 
 
 def pack_info(d: DeviceInfo) -> bytes:
+    *numbers, serial, firmware, fpb = astuple(d)[:-1]  # all but version
     return _INFO.pack(
-        b"SPKI",
-        VERSION,
-        0,
-        d.width,
-        d.height,
-        d.stored_width,
-        d.layout_flags,
-        d.frame_bytes,
-        d.rate_hz,
-        d.max_block_bytes,
-        d.packet_bytes,
-        d.ep_in,
-        0,
-        d.serial.encode()[:16],
-        d.firmware.encode()[:8],
-        d.default_frames_per_block,
+        b"SPKI", VERSION, 0, *numbers, 0, serial.encode()[:16], firmware.encode()[:8], fpb
     )
 
 
@@ -260,25 +221,14 @@ def parse_info(buf) -> DeviceInfo:
     if len(b) < _INFO.size or b[:4] != b"SPKI":
         raise ValueError(f"not a device info reply ({len(b)} bytes, starts {b[:4]!r})")
     f = _INFO.unpack_from(b)
-    return DeviceInfo(
-        width=f[3],
-        height=f[4],
-        stored_width=f[5],
-        layout_flags=f[6],
-        frame_bytes=f[7],
-        rate_hz=f[8],
-        max_block_bytes=f[9],
-        packet_bytes=f[10],
-        ep_in=f[11],
-        serial=f[13].rstrip(b"\0").decode(errors="replace"),
-        firmware=f[14].rstrip(b"\0").decode(errors="replace"),
-        default_frames_per_block=f[15],
-        version=f[1],
-    )
+    serial, firmware = (s.rstrip(b"\0").decode(errors="replace") for s in f[13:15])
+    return DeviceInfo(*f[3:12], serial, firmware, f[15], version=f[1])
 
 
 @dataclass(frozen=True)
 class DeviceStatus:
+    """The GET_STATUS reply; fields in wire order (two reserved fields after ``streaming``)."""
+
     streaming: bool
     frames_per_block: int
     next_index: int
@@ -287,9 +237,8 @@ class DeviceStatus:
 
 
 def pack_status(s: DeviceStatus) -> bytes:
-    return _STATUS.pack(
-        int(s.streaming), 0, 0, s.frames_per_block, s.next_index, s.dropped_total, s.fifo_frames
-    )
+    streaming, *counts = astuple(s)
+    return _STATUS.pack(int(streaming), 0, 0, *counts)
 
 
 def parse_status(buf) -> DeviceStatus:
@@ -297,7 +246,4 @@ def parse_status(buf) -> DeviceStatus:
     if len(b) < _STATUS.size:
         raise ValueError(f"status reply too short ({len(b)} bytes)")
     f = _STATUS.unpack_from(b)
-    return DeviceStatus(
-        streaming=bool(f[0]), frames_per_block=f[3], next_index=f[4], dropped_total=f[5],
-        fifo_frames=f[6],
-    )
+    return DeviceStatus(bool(f[0]), *f[3:])

@@ -1,5 +1,6 @@
 """Helpers for integration tests: start the real service (``cfsr serve``) on a free loopback
-port in a subprocess, talk to it, and stop it; wait for a condition with a deadline.
+port in a subprocess, talk to it, and stop it; wait for a condition with a deadline; run
+a spike array through the live and offline streaming paths.
 
 Not a test module (no ``test_`` prefix). Test modules import it as ``livehelpers``: pytest puts
 ``tests/`` (a folder without ``__init__.py``) on ``sys.path`` for them, as for ``wheelenv``."""
@@ -20,9 +21,21 @@ from typing import Any, TypeVar
 
 import httpx
 
+from cfsr.layout import Layout
+
 T = TypeVar("T")
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+#: Stored layouts every packed path must read as the unpacked frames: plain, head columns,
+#: head columns with right-to-left rows, rows stored upright
+PACKED_LAYOUTS = (
+    Layout(16, 6),
+    Layout(16, 6, head_cols=8),
+    Layout(16, 6, fliplr=True, head_cols=8),
+    Layout(16, 6, flipud=False),
+)
 
 
 def free_port() -> int:
@@ -91,6 +104,24 @@ def read_blocks(
     wait_until(got_all, timeout, lambda: f"{k} blocks (got {len(out)}; counters "
                f"{src.counters()})", interval=0)
     return out
+
+
+def streamed_outputs(
+    spikes: Any, method: str, times: list[int], params: dict[str, Any], block: int
+) -> tuple[dict[int, Any], dict[int, Any]]:
+    """``{t: Output}`` at ``times`` of ``spikes`` (upright ``(n, H, W)`` 0/1) by the two
+    streaming paths: the live one (a StreamingReconstructor fed ``block``-frame packed
+    blocks, as the worker is) and the offline file path (``stream_reconstruct``)."""
+    from cfsr import StreamingReconstructor
+    from cfsr.offline import stream_reconstruct
+    from cfsr.spikes import SpikeRecording
+
+    rec = SpikeRecording.from_array(spikes)
+    sr = StreamingReconstructor(method, rec.layout, params=params, slack=block)
+    blocks = ((a, rec.packed(a, a + block)) for a in range(0, len(rec), block))
+    live = dict(sr.run(blocks, times))
+    offline = dict(stream_reconstruct(rec, method, times, params=params, block=block))
+    return live, offline
 
 
 def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:

@@ -148,7 +148,7 @@ def test_adaptive_within_a_tenth_of_a_db_of_the_full_pipeline():
 
 @pytest.mark.parametrize("fliplr", [False, True])
 def test_packed_path_equals_frames_path_with_head_columns(fliplr):
-    from cfsr._bits import unpack_frames
+    from cfsr._bits import unpack_layout
     from cfsr.layout import Layout
 
     rng = np.random.default_rng(7)
@@ -156,9 +156,7 @@ def test_packed_path_equals_frames_path_with_head_columns(fliplr):
     n = 500
     packed = rng.integers(0, 256, (n, lay.frame_bytes), dtype=np.uint8)
     packed &= rng.integers(0, 256, packed.shape, dtype=np.uint8)  # sparser spikes
-    frames = unpack_frames(
-        packed, lay.height, lay.width, stored_width=lay.stored_width, flipud=True, fliplr=fliplr
-    )
+    frames = unpack_layout(packed, lay)
     m = get_method("cfsr")
     p = _params(T=60, theta=3, max_isi=40, mog_frames=4, mog_stride=10, pm_count=4)
     c = 300

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from livehelpers import streamed_outputs
 
 import cfsr
 from cfsr import StreamingReconstructor
 from cfsr.methods.tfstp import state_grid
-from cfsr.offline import stream_reconstruct
 from cfsr.spikes import SpikeRecording
 
 # small windows keep the test quick; defaults are exercised by the accuracy tests
@@ -63,16 +63,11 @@ def test_streaming_equals_whole_array(method, block):
     params = SMALL[method]
     times = [0, 1, 90, 200, 333, 419]
     whole, wm = cfsr.reconstruct(s, method, times, return_masks=True, **params)
-    rec = SpikeRecording.from_array(s)
-    sr = StreamingReconstructor(method, rec.layout, params=params, slack=block)
-    blocks = ((a, rec.packed(a, a + block)) for a in range(0, len(rec), block))
-    got = dict(sr.run(blocks, times))
+    got, off = streamed_outputs(s, method, times, params, block)
     for i, t in enumerate(times):
         np.testing.assert_array_equal(got[t].rate, whole[i])
         for k, m in wm.items():
             np.testing.assert_array_equal(got[t].masks[k], m[i])
-    off = dict(stream_reconstruct(rec, method, times, params=params, block=block))
-    for i, t in enumerate(times):
         np.testing.assert_array_equal(off[t].rate, whole[i])
 
 

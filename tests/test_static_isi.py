@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from livehelpers import PACKED_LAYOUTS
 
 from cfsr import Layout
 from cfsr._bits import pack_frames
@@ -109,14 +110,7 @@ def test_span_matches_reference():
 
 
 @pytest.mark.parametrize(
-    "layout",
-    [
-        Layout(16, 6),
-        Layout(16, 6, head_cols=8),
-        Layout(16, 6, fliplr=True, head_cols=8),
-        Layout(16, 6, flipud=False),
-        Layout(1000, 3),  # several 64-byte chunks
-    ],
+    "layout", [*PACKED_LAYOUTS, Layout(1000, 3)]  # the last: several 64-byte chunks
 )
 def test_packed_equals_unpacked(layout):
     rng = np.random.default_rng(5)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import cfsr
-from cfsr._bits import pack_frames, unpack_frames
+from cfsr._bits import pack_frames, unpack_layout
 from cfsr._words import PackedWindow
 from cfsr.layout import Layout
 from cfsr.methods import cfsr_fine as cf
@@ -38,9 +38,7 @@ def test_span_counts_equal_the_unpacked_count_for_every_layout(flipud, fliplr, h
     rng = np.random.default_rng(5)
     lay = Layout(24, 16, head_cols=head, flipud=flipud, fliplr=fliplr)
     packed = rng.integers(0, 256, (300, lay.frame_bytes), dtype=np.uint8)
-    frames = unpack_frames(
-        packed, lay.height, lay.width, stored_width=lay.stored_width, flipud=flipud, fliplr=fliplr
-    )
+    frames = unpack_layout(packed, lay)
     src = PackedWindow.from_packed(packed, lay)
     for a, b in ((0, 300), (17, 200), (250, 251)):
         np.testing.assert_array_equal(span_counts(src, a, b), count_spikes(frames, a, b))

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from livehelpers import PACKED_LAYOUTS, streamed_outputs
 
 import cfsr
 from cfsr import Layout, StreamingReconstructor
 from cfsr.methods.tfi import isi_at
-from cfsr.offline import stream_reconstruct
 from cfsr.spikes import SpikeRecording
 
 
@@ -120,15 +120,10 @@ def test_streaming_equals_whole_array(method, params, block):
     s = rand_spikes(t=260, h=5, w=16, seed=2)
     times = [0, 3, 40, 128, 200, 259]
     whole = cfsr.reconstruct(s, method, times, **params)
-    rec = SpikeRecording.from_array(s)
-    sr = StreamingReconstructor(method, rec.layout, params=params, slack=block)
-    blocks = ((a, rec.packed(a, a + block)) for a in range(0, len(rec), block))
-    got = dict(sr.run(blocks, times))
+    # the live path and the offline file path (sparse spans) give the same numbers
+    got, off = streamed_outputs(s, method, times, params, block)
     for i, t in enumerate(times):
         np.testing.assert_array_equal(got[t].rate, whole[i])
-    # the offline file path (sparse spans) gives the same numbers too
-    off = dict(stream_reconstruct(rec, method, times, params=params, block=block))
-    for i, t in enumerate(times):
         np.testing.assert_array_equal(off[t].rate, whole[i])
 
 
@@ -162,15 +157,7 @@ def test_layout_of_pushed_blocks_is_checked():
         sr.push(np.zeros((3, 9), np.uint8), 0)
 
 
-@pytest.mark.parametrize(
-    "layout",
-    [
-        Layout(16, 6),
-        Layout(16, 6, head_cols=8),
-        Layout(16, 6, fliplr=True, head_cols=8),
-        Layout(16, 6, flipud=False),
-    ],
-)
+@pytest.mark.parametrize("layout", PACKED_LAYOUTS)
 def test_packed_paths_equal_unpacked_kernels(layout):
     from cfsr._bits import pack_frames
     from cfsr.methods.tfi import tfi_rate, tfi_rate_packed

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["row_slab", "pixel_times"]
+__all__ = ["row_slab", "row_gather", "pixel_times"]
 
 
 @njit(cache=True, inline="always")
@@ -22,6 +22,14 @@ def row_slab(spikes, lo, length, y):  # pragma: no cover - numba
         for x in range(w):
             slab[t, x] = spikes[lo + t, y, x]
     return slab
+
+
+@njit(cache=True, inline="always")
+def row_gather(spikes, lo, length, y):  # pragma: no cover - numba
+    """:func:`row_slab` of row ``y`` and a buffer for one pixel's spike times in it
+    (``length + 1`` int64, filled by :func:`pixel_times`): what a row of a per-pixel walk
+    allocates."""
+    return row_slab(spikes, lo, length, y), np.empty(length + 1, np.int64)
 
 
 @njit(cache=True, inline="always")

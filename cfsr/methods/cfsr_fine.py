@@ -53,11 +53,13 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
+from cfsr._isi import search_range
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
     count_range,
     isi_in_words,
+    n_words,
     next_spike,
     prefix_counts,
     prev_spike,
@@ -77,7 +79,7 @@ from cfsr.methods.csr import (
     uses_steady,
 )
 from cfsr.methods.daisi import daisi_from_times, log_table
-from cfsr.methods.distinction import distinct_in_words
+from cfsr.methods.distinction import distinct_in_words, long_isi_buffer
 from cfsr.methods.masks import fine_mask
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import patchmatch_fuse
@@ -317,6 +319,30 @@ class _Spans(NamedTuple):
     m: int
 
 
+class _Windows(NamedTuple):
+    """The K history distinction windows of ``span`` (T) steps ending at ``ends``, ``theta``
+    (Eq. 5-6), and the TFI search (``m`` steps each side of each end, Eq. 3)."""
+
+    ends: np.ndarray  #: int64 (K,): sorted last steps of the windows
+    span: int
+    theta: int
+    m: int
+
+
+class _Stored(NamedTuple):
+    """The first pass's spike words, kept for the second: pixel ``x`` of row ``y`` at
+    ``store[y, bases[y, 0] + bases[y, 1] * x]`` (:func:`cfsr._words.row_or_stored`); empty
+    arrays make the second pass gather them itself."""
+
+    store: np.ndarray  #: uint64 (H, W + ROW_PAD, words) or (0, 0, 0)
+    bases: np.ndarray  #: int64 (H, 2) or (0, 2)
+
+
+# a theta no distinct-ISI count reaches (T <= MAX_WINDOW_STEPS): the second pass then walks
+# no coarse window and gives the TFI intervals alone (:func:`_tfi_at`)
+_NO_COARSE = 1 << 30
+
+
 class _Daisi(NamedTuple):
     """DAISI at ``c`` over ``c +- dspan`` (Eq. 10-14), spikes read in ``[d_lo, d_hi)``."""
 
@@ -328,7 +354,7 @@ class _Daisi(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _static_kernel(src, union, spans, dai, ub, tfp, daisi, store, bases):
+def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
     # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
 
@@ -340,13 +366,13 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, store, bases):
     edge is counted once), or where ``isi_est[j]`` the ``isi`` static rate over the same spans
     (:func:`cfsr.methods.tfp.span_rate`, first and last spike by two bit scans; the TFI at
     ``cents[j]``, ``m`` steps each side, below two spikes); DAISI at t. The words stay in
-    ``store[y]`` (pixel ``x`` of row ``y`` at ``bases[y, 0] + bases[y, 1] * x``) for the
-    second pass.
+    ``kept`` (:class:`_Stored`) for the second pass.
     """
     packed, geo, lo, hi = src
     u_lo, u_hi, span, theta = union
     bounds, ia, ib, isi_est, cents, m = spans
     c, dspan, d_lo, d_hi, logs = dai
+    store, bases = kept
     h, w = ub.shape
     n_all = packed.shape[0]
     n_win = ia.shape[0]
@@ -354,10 +380,10 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, store, bases):
     lens = np.empty(n_win, np.float64)
     for j in range(n_win):
         lens[j] = max(1, bounds[ib[j]] - bounds[ia[j]])
-    nw = (hi - lo + 63) >> 6
+    nw = n_words(lo, hi)
     for y in prange(h):
         words = store[y]
-        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        big = long_isi_buffer(lo, hi)
         loc = np.empty(2 * dspan + 8, np.int64)
         prefix = np.empty(nw + 1, np.int64)
         before = np.empty(nb, np.int64)
@@ -380,7 +406,8 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, store, bases):
                     tfp[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
                 elif isi_est[j]:  # fewer than two spikes in the span: the TFI at its step
                     e = cents[j]
-                    iv = isi_in_words(words, r, lo, e, max(0, e - m), min(n_all, e + m + 1))
+                    e_lo, e_hi = search_range(e, m, n_all)
+                    iv = isi_in_words(words, r, lo, e, e_lo, e_hi)
                     tfp[j, y, x] = np.float32(1.0 / iv)
                 else:
                     tfp[j, y, x] = np.float32(cnt / lens[j])
@@ -388,27 +415,31 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, store, bases):
 
 
 @njit(parallel=True, cache=True)
-def _dynamic_kernel(packed, geo, lo, hi, ends, span, theta, m, ub, counts, isi, store, bases):
-    # pragma: no cover - numba
+def _dynamic_kernel(src, wins, kept, ub, counts, isi):  # pragma: no cover - numba
     """Second pass, run only when some pixel was not proven static: the TFI interval at
     every history step (the ATSR scale of Eq. 7 needs it on the static region too) and,
     where ``ub >= theta``, each history window's distinct-ISI count (Eq. 5) by a walk that
     stops at ``theta`` (only ``count >= theta``, the coarse mask, is used: a moving pixel
     reaches it within a few words); elsewhere ``counts`` is ``ub``, below ``theta`` like
-    every window's own count. Reads the first pass's words (``store``, ``bases``, steps from
-    ``lo``) when it holds one row per image row; otherwise gathers them."""
+    every window's own count. ``src`` (:class:`_Words`) gives the steps, ``wins``
+    (:class:`_Windows`) the windows. Reads the first pass's words (``kept``,
+    :class:`_Stored`) when it holds one row per image row; otherwise gathers them."""
+    packed, geo, lo, hi = src
+    ends, span, theta, m = wins
+    store, bases = kept
     n = packed.shape[0]
     h, w = ub.shape
     k_count = ends.shape[0]
-    nw = (hi - lo + 63) >> 6
+    nw = n_words(lo, hi)
     for y in prange(h):
-        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        big = long_isi_buffer(lo, hi)
         words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
         for x in range(w):
             r = base + step * x
             for k in range(k_count):
                 e = ends[k]
-                isi[k, y, x] = isi_in_words(words, r, lo, e, max(0, e - m), min(n, e + m + 1))
+                e_lo, e_hi = search_range(e, m, n)
+                isi[k, y, x] = isi_in_words(words, r, lo, e, e_lo, e_hi)
             if ub[y, x] < theta:
                 for k in range(k_count):
                     counts[k, y, x] = ub[y, x]
@@ -471,7 +502,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
-    store = _scratch((h, w + ROW_PAD, (hi - lo + 63) >> 6))
+    store = _scratch((h, w + ROW_PAD, n_words(lo, hi)))
     bases = np.empty((h, 2), np.int64)
     _static_kernel(
         _Words(src.packed, src.geo, lo, hi),
@@ -488,8 +519,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
         ub,
         tfps,
         daisi,
-        store,
-        bases,
+        _Stored(store, bases),
     )
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
@@ -504,7 +534,12 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     counts = np.empty((k, h, w), np.int32)
     isi = np.empty((k, h, w), np.int32)
     _dynamic_kernel(
-        src.packed, src.geo, lo, hi, ends, span, theta, m, ub, counts, isi, store, bases
+        _Words(src.packed, src.geo, lo, hi),
+        _Windows(ends, span, theta, m),
+        _Stored(store, bases),
+        ub,
+        counts,
+        isi,
     )
     masks = counts >= theta
     # TFI where a frame has dynamic pixels, its clipped TFP elsewhere (as csr_frames)
@@ -523,22 +558,15 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
 def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
     """TFI rate (Eq. 3) at ``center`` on the whole frame, from the packed window."""
     n = src.n
-    a, b = max(0, center - m), min(n, center + m + 1)
+    a, b = search_range(center, m, n)
     isi = np.empty((1, src.h, src.w), np.int32)
     _dynamic_kernel(
-        src.packed,
-        src.geo,
-        a,
-        b,
-        np.array([center], np.int64),
-        1,
-        1 << 30,
-        m,
+        _Words(src.packed, src.geo, a, b),
+        _Windows(np.array([center], np.int64), 1, _NO_COARSE, m),
+        _Stored(np.empty((0, 0, 0), np.uint64), np.empty((0, 2), np.int64)),  # gather words
         np.zeros((src.h, src.w), np.int32),
         np.empty_like(isi),
         isi,
-        np.empty((0, 0, 0), np.uint64),  # no stored words: gather them
-        np.empty((0, 2), np.int64),
     )
     return (1.0 / isi[0]).astype(np.float32)
 

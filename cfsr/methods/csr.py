@@ -18,7 +18,7 @@ A window with no dynamic pixel needs only TFP: the TFI stage is skipped and the 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -165,14 +165,14 @@ CSR_PRESETS: dict[str, dict[str, Any]] = {
 #: so the two regions differ in span length only (docs/methods.md, CSR). The paper's TFP
 #: window, if chosen, stays short and centred (it smears a missed mover less); the steady
 #: static span is long (static_span = 160, centred), its check catching missed movers.
+#: Shared parameters keep CSR_PARAMS' unit and range; only their defaults (and a help text
+#: that names the steady rule) differ here.
 CSR_ONLY_PARAMS: dict[str, Param] = {
     **CSR_PARAMS,
-    "static_span": Param(
-        160,
-        "steps",
-        "isi/steady: span of the static estimate, placed as tfp_mode (0: tfp_window)",
-        minimum=0,
-        maximum=MAX_WINDOW_STEPS // 2,
+    "static_span": replace(
+        CSR_PARAMS["static_span"],
+        default=160,
+        help="isi/steady: span of the static estimate, placed as tfp_mode (0: tfp_window)",
     ),
     "dynamic_estimator": Param(
         "steady",
@@ -188,16 +188,8 @@ CSR_ONLY_PARAMS: dict[str, Param] = {
         minimum=2,
         maximum=MAX_WINDOW_STEPS // 2,
     ),
-    "tfp_window": Param(
-        32,
-        "steps",
-        "TFP window w for the static region (Eq. 4)",
-        minimum=1,
-        maximum=MAX_WINDOW_STEPS // 2,
-    ),
-    "tfp_mode": Param(
-        "centred", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
-    ),
+    "tfp_window": replace(CSR_PARAMS["tfp_window"], default=32),
+    "tfp_mode": replace(CSR_PARAMS["tfp_mode"], default="centred"),
 }
 
 

@@ -17,8 +17,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cfsr._words import ROW_PAD, geometry, leading_zeros, popcount, row_words, trailing_zeros
-from cfsr.methods._spiketimes import pixel_times, row_slab
+from cfsr._words import (
+    ROW_PAD,
+    WORD_STEPS,
+    geometry,
+    leading_zeros,
+    n_words,
+    popcount,
+    row_words,
+    trailing_zeros,
+)
+from cfsr.methods._spiketimes import pixel_times, row_gather
 
 __all__ = [
     "distinct_isi_counts",
@@ -80,8 +89,7 @@ def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
     length = max(0, hi - lo)
     for y in prange(h):
         # copy the row's time slab once: the per-pixel scans below then stay in cache
-        slab = row_slab(spikes, lo, length, y)
-        times = np.empty(length + 1, np.int64)
+        slab, times = row_gather(spikes, lo, length, y)
         hist = np.zeros(span + 1, np.int32)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)
@@ -126,6 +134,13 @@ def distinct_isi_counts(spikes: np.ndarray, ends, span: int) -> np.ndarray:
 def coarse_masks(spikes: np.ndarray, ends, span: int, theta: int) -> np.ndarray:
     """Coarse dynamic masks (Eq. 6): ``|S_x(t)| >= theta``, bool ``(len(ends), H, W)``."""
     return distinct_isi_counts(spikes, ends, span) >= int(theta)
+
+
+@njit(cache=True, inline="always")
+def long_isi_buffer(lo, hi):  # pragma: no cover - numba
+    """The ``big`` buffer of :func:`distinct_in_words` over steps ``[lo, hi)``: room for its
+    ISIs of a word or more (at most one per :data:`~cfsr._words.WORD_STEPS` steps)."""
+    return np.empty((hi - lo) // WORD_STEPS + 1, np.int64)
 
 
 @njit(cache=True, inline="always")
@@ -196,10 +211,10 @@ def distinct_in_words(words, k, nw, lo, a, b, span, big, cap):  # pragma: no cov
 def _distinct_words_kernel(packed, geo, lo, hi, span, out):  # pragma: no cover - numba
     """:func:`distinct_in_words` over ``[lo, hi)`` for every pixel, image order."""
     h, w = out.shape
-    nw = (hi - lo + 63) >> 6
+    nw = n_words(lo, hi)
     for y in prange(h):
         words = np.empty((w + ROW_PAD, nw), np.uint64)
-        big = np.empty((hi - lo) // 64 + 1, np.int64)
+        big = long_isi_buffer(lo, hi)
         base, step = row_words(packed, geo, lo, hi, y, 0, w, words)
         for x in range(w):
             out[y, x] = distinct_in_words(words, base + step * x, nw, lo, lo, hi, span, big, 0)

@@ -207,24 +207,10 @@ def _ssd(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
 
 
 @njit(cache=True, inline="always")
-def _ssd6(ref, tgt, y, x, ty, tx, limit):  # pragma: no cover - numba
-    """:func:`_ssd` for the default 6 x 6 patch (constant bounds: the loops unroll)."""
-    s = 0.0
-    for dy in range(_simd.PATCH):
-        rr = ref[y + dy]
-        qr = tgt[ty + dy]
-        for dx in range(_simd.PATCH):
-            d = rr[x + dx] - qr[tx + dx]
-            s += d * d
-        if s > limit:
-            return s
-    return s
-
-
-@njit(cache=True, inline="always")
 def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
+    """:func:`_ssd`; the default 6 x 6 patch passes a constant (inlined, its loops unroll)."""
     if patch == _simd.PATCH:
-        return _ssd6(ref, tgt, y, x, ty, tx, limit)
+        return _ssd(ref, tgt, y, x, ty, tx, _simd.PATCH, limit)
     return _ssd(ref, tgt, y, x, ty, tx, patch, limit)
 
 
@@ -384,6 +370,63 @@ def _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search):  # pragma: no c
                 box[o] = qx - x
 
 
+@njit(cache=True, inline="always")
+def _predicted(off, src, wt, p0, p1, cand):  # pragma: no cover - numba
+    """Write into ``cand`` the offsets one target's predictions (``src``, ``wt``: its rows of
+    :class:`_Plan`) give the block's two end pixels ``p0`` and ``p1 - 1``; how many.
+
+    Motion is smooth across BLOCK columns, so the ends bracket the pixels between them, and
+    propagation and the local search cover the rest (every pixel's own prediction: 1.4x the
+    work for the same PSNR within 0.04 dB on disk/fan/car); ends whose sources match predict
+    alike.
+    """
+    nc = 0
+    last = max(1, p1 - p0 - 1)
+    for c in range(src.shape[0]):
+        s0 = src[c, 0]
+        if s0 < 0:
+            break
+        s1 = src[c, 1]
+        w0 = wt[c, 0]
+        w1 = wt[c, 1]
+        ay = np.int64(_NO_OFFSET)
+        ax = ay
+        by = ay
+        bx = ay
+        for k in range(p0, p1, last):
+            ky = np.int64(off[s0, k, 0])
+            kx = np.int64(off[s0, k, 1])
+            ly = np.int64(0)
+            lx = np.int64(0)
+            if s1 >= 0:
+                ly = np.int64(off[s1, k, 0])
+                lx = np.int64(off[s1, k, 1])
+            if ky == ay and kx == ax and ly == by and lx == bx:
+                continue
+            ay = ky
+            ax = kx
+            by = ly
+            bx = lx
+            py = w0 * ky + w1 * ly
+            px = w0 * kx + w1 * lx
+            cy = np.int64(np.floor(py + 0.5))
+            cx = np.int64(np.floor(px + 0.5))
+            nc = _add_cand(cand, nc, cy, cx)
+    return nc
+
+
+@njit(cache=True, inline="always")
+def _block_bests(cand, xs, p0, p1, boy, box):  # pragma: no cover - numba
+    """Write into ``cand`` the distinct best offsets (lanes ``boy``, ``box``) of the block's
+    pixels ``p0 .. p1-1``; how many."""
+    xb = xs[p0]
+    nb = 0
+    for k in range(p0, p1):
+        o = xs[k] - xb
+        nb = _add_cand(cand, nb, boy[o], box[o])
+    return nb
+
+
 @njit(parallel=True, cache=True)
 def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
     # pragma: no cover - numba
@@ -395,7 +438,6 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
     seed = search.seed
     h = targets.shape[1] - patch + 1
     w = targets.shape[2] - (patch - 1) - _EXTRA
-    n_c = src.shape[1]
     # bands of rows are independent (propagation stays inside a band), so they run in parallel
     # with a result that does not depend on the number of threads; inside a band the targets
     # run in ``order`` because each is initialised from those before it
@@ -440,43 +482,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                     nc = 0
                     if it == 0:
                         if predicted:
-                            # the predicted offsets of the block's two end pixels: motion is
-                            # smooth across BLOCK columns, so the ends bracket the pixels
-                            # between them, and propagation and the local search cover the rest
-                            # (every pixel's own prediction: 1.4x the work for the same PSNR
-                            # within 0.04 dB on disk/fan/car); ends whose sources match predict
-                            # alike
-                            last = max(1, p1 - p0 - 1)
-                            for c in range(n_c):
-                                s0 = src[i, c, 0]
-                                if s0 < 0:
-                                    break
-                                s1 = src[i, c, 1]
-                                w0 = wt[i, c, 0]
-                                w1 = wt[i, c, 1]
-                                ay = np.int64(_NO_OFFSET)
-                                ax = ay
-                                by = ay
-                                bx = ay
-                                for k in range(p0, p1, last):
-                                    ky = np.int64(off[s0, k, 0])
-                                    kx = np.int64(off[s0, k, 1])
-                                    ly = np.int64(0)
-                                    lx = np.int64(0)
-                                    if s1 >= 0:
-                                        ly = np.int64(off[s1, k, 0])
-                                        lx = np.int64(off[s1, k, 1])
-                                    if ky == ay and kx == ax and ly == by and lx == bx:
-                                        continue
-                                    ay = ky
-                                    ax = kx
-                                    by = ly
-                                    bx = lx
-                                    py = w0 * ky + w1 * ly
-                                    px = w0 * kx + w1 * lx
-                                    cy = np.int64(np.floor(py + 0.5))
-                                    cx = np.int64(np.floor(px + 0.5))
-                                    nc = _add_cand(cand, nc, cy, cx)
+                            nc = _predicted(off, src[i], wt[i], p0, p1, cand)
                         else:
                             nc = _add_cand(cand, nc, 0, 0)
                     # propagation: the offsets of the already-visited neighbours in the band
@@ -498,10 +504,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                     # full search around each current best (re-collected at every radius); in
                     # a predicted target's local search around the first two distinct bests
                     # before the search (the draws then do not wait on each other's results)
-                    nb = 0
-                    for k in range(p0, p1):
-                        o = xs[k] - xb
-                        nb = _add_cand(cand, nb, boy[o], box[o])
+                    nb = _block_bests(cand, xs, p0, p1, boy, box)
                     if predicted:
                         nb = min(nb, _NEAR_SEEDS)
                     r = max_r
@@ -513,10 +516,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                             _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search)
                         r //= 2
                         if not predicted:
-                            nb = 0
-                            for k in range(p0, p1):
-                                o = xs[k] - xb
-                                nb = _add_cand(cand, nb, boy[o], box[o])
+                            nb = _block_bests(cand, xs, p0, p1, boy, box)
                     for k in range(p0, p1):
                         o = xs[k] - xb
                         costi[k] = bc[o]
@@ -698,24 +698,8 @@ def nnf_temporal(
 
     Parameters
     ----------
-    ref : ndarray (H, W) float32
-        Guide image of the reference frame.
-    targets : ndarray (N, H, W) float32
-        Guide images of the target frames.
-    mask : ndarray (H, W) bool
-        Pixels whose patches are matched.
-    patch : int
-        Patch side (pixels); the paper uses 6.
-    iters : int
-        PatchMatch scans (alternating direction) of a full search.
-    max_radius : int
-        Largest random-search radius (pixels) of a full search.
-    seed : int
-        Seed of the counter-based random search (any int; reduced modulo 2**64).
-    origin : (int, int)
-        Position of ``ref[0, 0]`` in the full frame: the random draws are keyed by full-frame
-        positions (and the temporal schedule's blocks and bands are cut there), so a crop and
-        the whole frame draw alike.
+    ref, targets, mask, patch, iters, max_radius, seed, origin
+        As in :func:`nnf_independent`.
     offsets_steps : sequence of int, length N
         Each target's signed step from the reference frame.
     near_radius, near_iters : int
@@ -725,12 +709,8 @@ def nnf_temporal(
 
     Returns
     -------
-    ys, xs : ndarray (M,) int64
-        Coordinates of the matched pixels (row-major order).
-    offsets : ndarray (N, M, 2) int32
-        (dy, dx) from each pixel to its match in each target.
-    cost : ndarray (N, M) float32
-        SSD of each match (guide units squared, summed over the patch).
+    ys, xs, offsets, cost
+        As in :func:`nnf_independent`.
     """
     steps = [int(v) for v in offsets_steps]
     if len(steps) != np.shape(targets)[0]:
@@ -764,53 +744,25 @@ def nnf_temporal(
     return ys, xs, off, cost
 
 
+# keywords of the temporal schedule alone (nnf_multi drops them for the independent one)
+_TEMPORAL_ONLY = ("near_radius", "near_iters", "band")
+
+
 def nnf_multi(
-    ref: np.ndarray,
-    targets: np.ndarray,
-    mask: np.ndarray,
-    *,
-    patch: int = PATCH,
-    iters: int = ITERS,
-    max_radius: int = MAX_RADIUS,
-    seed: int = 0,
-    origin: tuple[int, int] = (0, 0),
-    offsets_steps=None,
-    near_radius: int = NEAR_RADIUS,
-    near_iters: int = NEAR_ITERS,
-    band: int = BAND,
+    ref: np.ndarray, targets: np.ndarray, mask: np.ndarray, *, offsets_steps=None, **search
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Nearest-neighbour fields from ``ref`` to each of ``targets`` on the ``mask`` pixels.
 
     Picks the schedule: without ``offsets_steps``, :func:`nnf_independent` (every target its
-    own full search; ``near_radius``, ``near_iters`` and ``band`` are not used); with them
-    (each target's signed step from the reference), :func:`nnf_temporal`. The parameters and
-    the result are theirs.
+    own full search; ``near_radius``, ``near_iters`` and ``band`` are accepted and not used);
+    with them (each target's signed step from the reference), :func:`nnf_temporal`. The
+    keywords ``search`` (``patch``, ``iters``, ``max_radius``, ``seed``, ``origin``, ...), their
+    defaults and the result are theirs.
     """
     if offsets_steps is None:
-        return nnf_independent(
-            ref,
-            targets,
-            mask,
-            patch=patch,
-            iters=iters,
-            max_radius=max_radius,
-            seed=seed,
-            origin=origin,
-        )
-    return nnf_temporal(
-        ref,
-        targets,
-        mask,
-        offsets_steps,
-        patch=patch,
-        iters=iters,
-        max_radius=max_radius,
-        near_radius=near_radius,
-        near_iters=near_iters,
-        band=band,
-        seed=seed,
-        origin=origin,
-    )
+        kept = {k: v for k, v in search.items() if k not in _TEMPORAL_ONLY}
+        return nnf_independent(ref, targets, mask, **kept)
+    return nnf_temporal(ref, targets, mask, offsets_steps, **search)
 
 
 @njit(parallel=True, cache=True)
@@ -842,21 +794,15 @@ def _fuse_kernel(ref_raw, raw, ys, xs, off, cost, scale, out):  # pragma: no cov
 
 
 def fuse_matches(
-    ref_raw: np.ndarray,
-    raw: np.ndarray,
-    ys: np.ndarray,
-    xs: np.ndarray,
-    offsets: np.ndarray,
-    cost: np.ndarray,
-    *,
-    patch: int = PATCH,
-    h: float = 0.0,
+    ref_raw: np.ndarray, raw: np.ndarray, matches, *, patch: int = PATCH, h: float = 0.0
 ) -> np.ndarray:
     """Average the reference value with the matched values of every target at the given pixels.
 
-    Weights are ``exp(-SSD / (patch**2 * h**2))`` (non-local-means form); ``h <= 0`` gives the
-    plain average of the paper. Returns float32 ``(M,)`` in the units of ``raw``.
+    ``matches`` is ``(ys, xs, offsets, cost)``, the result of :func:`nnf_multi`. Weights are
+    ``exp(-SSD / (patch**2 * h**2))`` (non-local-means form); ``h <= 0`` gives the plain
+    average of the paper. Returns float32 ``(M,)`` in the units of ``raw``.
     """
+    ys, xs, offsets, cost = matches
     out = np.empty(ys.size, np.float32)
     if ys.size == 0:
         return out
@@ -881,37 +827,20 @@ def patchmatch_fuse(
     mask: np.ndarray,
     *,
     patch: int = PATCH,
-    iters: int = ITERS,
-    max_radius: int = MAX_RADIUS,
     h: float = 0.0,
-    seed: int = 0,
-    origin: tuple[int, int] = (0, 0),
-    offsets_steps=None,
-    near_radius: int = NEAR_RADIUS,
-    near_iters: int = NEAR_ITERS,
-    band: int = BAND,
+    **search,
 ) -> np.ndarray:
     """Refine ``ref_raw`` on ``mask`` by PatchMatch over the target frames.
 
-    Matching uses the guides; the averaged values are the raw rates. Pixels outside ``mask``
-    keep ``ref_raw``. ``origin``: see :func:`nnf_multi`. Returns float32 ``(H, W)``.
+    Matching uses the guides (:func:`nnf_multi` with ``patch`` and the keywords ``search``:
+    ``offsets_steps`` picks the schedule); the averaged values are the raw rates
+    (:func:`fuse_matches`, weight scale ``h``). Pixels outside ``mask`` keep ``ref_raw``.
+    Returns float32 ``(H, W)``.
     """
     out = np.array(ref_raw, dtype=np.float32, copy=True)
     if raw.shape[0] == 0 or not np.any(mask):
         return out
-    ys, xs, off, cost = nnf_multi(
-        ref_guide,
-        guides,
-        mask,
-        patch=patch,
-        iters=iters,
-        max_radius=max_radius,
-        seed=seed,
-        origin=origin,
-        offsets_steps=offsets_steps,
-        near_radius=near_radius,
-        near_iters=near_iters,
-        band=band,
-    )
-    out[ys, xs] = fuse_matches(ref_raw, raw, ys, xs, off, cost, patch=patch, h=h)
+    matches = nnf_multi(ref_guide, guides, mask, patch=patch, **search)
+    ys, xs = matches[:2]
+    out[ys, xs] = fuse_matches(ref_raw, raw, matches, patch=patch, h=h)
     return out

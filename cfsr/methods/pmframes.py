@@ -19,8 +19,16 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import get_num_threads, njit, prange
 
-from cfsr._isi import isi_from_times
-from cfsr._words import ROW_PAD, PackedWindow, popcount, row_words, word_spikes
+from cfsr._isi import isi_from_times, search_range
+from cfsr._words import (
+    ROW_PAD,
+    PackedWindow,
+    n_words,
+    popcount,
+    prefix_counts,
+    row_words,
+    word_spikes,
+)
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
@@ -92,7 +100,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     n = packed.shape[0]
     kc = centers.shape[0]
     cw = raw.shape[2]
-    nw = (hi - lo + _WORD_MASK) >> _WORD_SHIFT
+    nw = n_words(lo, hi)
     side = max(thr - 1, 0)  # spikes a fast pixel needs beyond each center's interval
     # per center: word and bit mask of the steps c + 1, c_lo and c_hi (ranks = spikes before)
     qs = np.empty((kc, 3), np.int64)
@@ -100,7 +108,8 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     one = np.uint64(1)
     for kk in range(kc):
         cc = centers[kk]
-        for j, t in enumerate((cc + 1, max(0, cc - m), min(n, cc + m + 1))):
+        c_lo, c_hi = search_range(cc, m, n)
+        for j, t in enumerate((cc + 1, c_lo, c_hi)):
             qs[kk, j] = (t - lo) >> _WORD_SHIFT
             ms[kk, j] = (one << np.uint64((t - lo) & _WORD_MASK)) - one
     q_ip = qs[:, 0].copy()
@@ -130,12 +139,8 @@ def _pm_kernel(span, centers_, region, raw, tfa):
             base, step = row_words(packed, geo, lo, hi, y0 + yy, x0 + xa, x0 + xb, words)
             for x in range(xa, xb):
                 k = base + step * (x - xa)
-                cnt = 0
-                for q in range(nw + 1):
-                    pre[q] = cnt
-                    cnt += np.int64(popcount(words[k, q]))
-                pre[nw + 1] = cnt
-                ns = cnt
+                prefix_counts(words, k, nw + 1, pre)
+                ns = pre[nw + 1]
                 ip_a = _rank(words, k, pre, qs[0, 0], ms[0, 0]) - 1
                 ip_b = _rank(words, k, pre, qs[kc - 1, 0], ms[kc - 1, 0]) - 1
                 # spikes read: indices ip - thr - 1 .. ip + thr + 2 of the first and last
@@ -174,8 +179,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
                     ip = _rank(words, k, pre, qs[kk, 0], ms[kk, 0]) - 1  # last spike <= cc
                     f0 = _rank(words, k, pre, qs[kk, 1], ms[kk, 1])  # first spike >= c_lo
                     f1 = _rank(words, k, pre, qs[kk, 2], ms[kk, 2])  # first spike >= c_hi
-                    c_lo = max(0, cc - m)
-                    c_hi = min(n, cc + m + 1)
+                    c_lo, c_hi = search_range(cc, m, n)
                     b_raw[kk, x] = np.float32(1.0 / isi_from_times(tv, ns, ip, c_lo, c_hi))
                     if thr <= 0:
                         continue

@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from cfsr.methods._spiketimes import pixel_times, row_slab
+from cfsr._isi import search_range
+from cfsr.methods._spiketimes import pixel_times, row_gather
 from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
 
 __all__ = ["adaptive_rate", "adaptive_rates"]
@@ -78,24 +79,20 @@ def _adaptive_kernel(spikes, centers, n_int, mw, lo, hi, refractory, out):
     """Rate from the ``n_int`` intervals nearest each of ``centers`` (search ``+- mw`` steps).
 
     Each pixel's spike times in ``[lo, hi)`` are gathered once; every center then uses the
-    spikes inside its own range ``[max(0, c - mw), min(n, c + mw + 1))``.
+    spikes inside its own range (:func:`cfsr._isi.search_range`, ``mw`` steps each side).
     ``refractory > 0``: within the chosen spikes, a spike closer than ``refractory`` times the
     median chosen interval to the previously kept spike is dropped (merged into the next
     interval) before the rate is taken.
     """
     n, h, w = spikes.shape
-    length = hi - lo
-    kc = centers.shape[0]
     for y in prange(h):
-        slab = row_slab(spikes, lo, length, y)
-        times = np.empty(length + 1, np.int64)
+        slab, times = row_gather(spikes, lo, hi - lo, y)
         gaps = np.empty(n_int + 1, np.int64)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)
-            for kk in range(kc):
+            for kk in range(centers.shape[0]):
                 c = centers[kk]
-                c_lo = max(0, c - mw)
-                c_hi = min(n, c + mw + 1)
+                c_lo, c_hi = search_range(c, mw, n)
                 f0 = np.searchsorted(times[:ns], c_lo, side="left")
                 f1 = np.searchsorted(times[:ns], c_hi, side="left")  # one past the last
                 if f1 - f0 < 2:

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
-from cfsr._isi import isi_from_times, needs_after, needs_before, tfi_interval
+from cfsr._isi import isi_from_times, needs_after, needs_before, search_range, tfi_interval
 from cfsr._packed import isi_packed, stored_to_image
-from cfsr.methods._spiketimes import pixel_times, row_slab
+from cfsr.methods._spiketimes import pixel_times, row_gather
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 
 __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
@@ -97,20 +97,16 @@ def _isi_multi_kernel(spikes, centers, m, lo, hi, out):  # pragma: no cover - nu
 
     Each pixel's spike times in ``[lo, hi)`` are gathered once (row slab, contiguous x), then
     every center gets exactly the interval, bounds and open-end rule of :func:`_isi_one` with
-    its own search range ``[max(0, c - m), min(n, c + m + 1))``.
+    its own search range (:func:`cfsr._isi.search_range`, ``m`` steps each side).
     """
     n, h, w = spikes.shape
-    length = hi - lo
-    kc = centers.shape[0]
     for y in prange(h):
-        slab = row_slab(spikes, lo, length, y)
-        times = np.empty(length + 1, np.int64)
+        slab, times = row_gather(spikes, lo, hi - lo, y)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)
-            for k in range(kc):
+            for k in range(centers.shape[0]):
                 c = centers[k]
-                a = max(0, c - m)
-                b = min(n, c + m + 1)
+                a, b = search_range(c, m, n)
                 # ip: last spike <= c (index into times)
                 ip = np.searchsorted(times[:ns], c, side="right") - 1
                 out[k, y, x] = isi_from_times(times, ns, ip, a, b)
@@ -145,7 +141,7 @@ def tfi_rate_packed(packed: np.ndarray, layout, center: int, *, max_isi: int = 4
     n = packed.shape[0]
     if not 0 <= center < n:
         raise ValueError(f"center {center} outside window of {n} steps")
-    lo, hi = max(0, center - max_isi), min(n, center + max_isi + 1)
+    lo, hi = search_range(center, max_isi, n)
     isi = stored_to_image(isi_packed(packed, center, lo, hi), layout)
     return (1.0 / isi).astype(np.float32)
 

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from cfsr._isi import search_range
 from cfsr._packed import CHUNK, count_packed, stored_to_image
 from cfsr._words import _load_u64, trailing_zeros
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
@@ -295,7 +296,7 @@ def fill_sparse_stored(
     ys, xs = np.nonzero(grid < 0)
     if ys.size:
         n = packed.shape[0]
-        lo, hi = max(0, center - max_isi), min(n, center + max_isi + 1)
+        lo, hi = search_range(center, max_isi, n)
         isi = isi_packed_at(packed, ys * stored_width + xs, center, lo, hi)
         grid[ys, xs] = (1.0 / isi).astype(np.float32)
     return flat

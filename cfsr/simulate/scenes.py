@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -91,19 +91,31 @@ def _bilinear_zero(tex, v, u):  # pragma: no cover - numba
     return acc
 
 
+class _Rotor(NamedTuple):
+    """A rotor's outline in frame pixels: centre, radius and, for a fan, hub and blades."""
+
+    cy: float  #: centre row (px)
+    cx: float  #: centre column (px)
+    radius: float  #: px
+    hub: float  #: hub radius (px)
+    period: float  #: blade repeat (rad); 0: a disk
+    blade: float  #: blade width (rad)
+    bwidth: float  #: > 0: blades are straight bars this wide (px)
+
+
 @njit(parallel=True, cache=True)
-def _render_rotor(
-    out, cov, oy, ox, angles, tex, cy, cx, radius, hub, period, blade, bwidth
-):  # pragma: no cover - numba
+def _render_rotor(out, cov, oy, ox, angles, tex, rotor):  # pragma: no cover - numba
     """Composite a rotating textured disk (``period == 0``) or fan over ``out`` in place.
 
     ``out`` is ``(n, rh, rw)`` float32, the ROI whose top-left pixel is frame ``(oy, ox)``;
-    ``angles[k]`` is the rotation (rad) at step k. A fan has blades ``blade`` rad wide repeating
-    every ``period`` rad, plus a hub of radius ``hub`` px; with ``bwidth > 0`` each blade is
-    instead a straight bar ``bwidth`` px wide along a ray (constant width at every radius).
-    Edges are anti-aliased by coverage ``clip(distance_to_edge + 0.5, 0, 1)``; ``cov`` (same
-    shape, or empty) receives max coverage.
+    ``angles[k]`` is the rotation (rad) at step k; ``rotor`` (:class:`_Rotor`) the outline.
+    A fan has blades ``blade`` rad wide repeating every ``period`` rad, plus a hub of radius
+    ``hub`` px; with ``bwidth > 0`` each blade is instead a straight bar ``bwidth`` px wide
+    along a ray (constant width at every radius). Edges are anti-aliased by coverage
+    ``clip(distance_to_edge + 0.5, 0, 1)``; ``cov`` (same shape, or empty) receives max
+    coverage.
     """
+    cy, cx, radius, hub, period, blade, bwidth = rotor
     n, rh, rw = out.shape
     th, tw = tex.shape
     tcy = 0.5 * (th - 1)
@@ -262,13 +274,15 @@ class Rotor:
             float(ox),
             self.angles(t0, n),
             self.texture,
-            float(self.cy),
-            float(self.cx),
-            float(self.radius),
-            float(self.hub),
-            float(period),
-            float(period * self.blade_fraction),
-            float(self.blade_width),
+            _Rotor(
+                float(self.cy),
+                float(self.cx),
+                float(self.radius),
+                float(self.hub),
+                float(period),
+                float(period * self.blade_fraction),
+                float(self.blade_width),
+            ),
         )
 
     def describe(self) -> dict[str, Any]:

@@ -49,7 +49,7 @@ import os
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -234,50 +234,73 @@ def _poisson(lam, state):  # pragma: no cover - numba
     return max(0.0, lam + math.sqrt(lam) * z), state
 
 
+class _Pixels(NamedTuple):
+    """The sensor's per-pixel maps (one row of each inside the kernels)."""
+
+    gain: np.ndarray  #: float64: charge per unit intensity per step
+    dark: np.ndarray  #: float64: dark charge per step
+    thr: np.ndarray  #: float64: firing threshold
+    pot: np.ndarray  #: float64: membrane potential, carried between calls
+
+
+class _Light(NamedTuple):
+    """What the sensor sees: ``bg[y, x]`` outside the ROI, ``dyn[t, y - oy, x - ox]`` in it."""
+
+    bg: np.ndarray  #: float (H, W)
+    dyn: np.ndarray  #: float (n, RH, RW)
+    oy: int
+    ox: int
+
+
+class _Shot(NamedTuple):
+    """Photon shot noise: ``epc`` electrons per unit charge (0: none), the noise stream's
+    ``seed`` and the first step ``t0`` of the call."""
+
+    epc: float
+    seed: np.uint64
+    t0: np.int64
+
+
 @njit(cache=True, inline="always")
-def _fire(src, s0, gain, dark, thr, pot, out, x0, x1):  # pragma: no cover - numba
-    """Integrate one row segment ``x0..x1-1`` for one step; intensity is ``src[x - s0]``."""
+def _threshold(p, th):  # pragma: no cover - numba
+    """Fire on charge ``p`` against threshold ``th``: (spike 0/1, potential left)."""
+    if p >= th:
+        p -= th
+        # charge above one threshold per step saturates at one spike/step
+        return 1, th if p > th else p
+    return 0, p
+
+
+@njit(cache=True, inline="always")
+def _fire(src, s0, row, out, x0, x1):  # pragma: no cover - numba
+    """Integrate one row segment ``x0..x1-1`` for one step; intensity is ``src[x - s0]``;
+    ``row``: the row's :class:`_Pixels`."""
+    gain, dark, thr, pot = row
     for x in range(x0, x1):
-        p = pot[x] + gain[x] * src[x - s0] + dark[x]
-        th = thr[x]
-        if p >= th:
-            out[x] = 1
-            p -= th
-            if p > th:  # charge above one threshold per step saturates at one spike/step
-                p = th
-        else:
-            out[x] = 0
-        pot[x] = p
+        out[x], pot[x] = _threshold(pot[x] + gain[x] * src[x - s0] + dark[x], thr[x])
 
 
 @njit(cache=True, inline="always")
-def _fire_shot(src, s0, gain, dark, thr, pot, out, x0, x1, epc, state):  # pragma: no cover
+def _fire_shot(src, s0, row, out, x0, x1, epc, state):  # pragma: no cover - numba
     """Like :func:`_fire` with Poisson photon shot noise; ``epc`` = electrons per unit charge."""
+    gain, dark, thr, pot = row
     for x in range(x0, x1):
         k, state = _poisson((gain[x] * src[x - s0] + dark[x]) * epc, state)
-        p = pot[x] + k / epc
-        th = thr[x]
-        if p >= th:
-            out[x] = 1
-            p -= th
-            if p > th:
-                p = th
-        else:
-            out[x] = 0
-        pot[x] = p
+        out[x], pot[x] = _threshold(pot[x] + k / epc, thr[x])
     return state
 
 
 @njit(parallel=True, cache=True)
-def _integrate(bg, dyn, oy, ox, gain, dark, thr, pot, out, epc, seed, t0):  # pragma: no cover
+def _integrate(light, pixels, shot, out):  # pragma: no cover - numba
     """Integrate-and-fire for ``out.shape[0]`` steps; rows in parallel, time in the middle.
 
-    Intensity is ``bg[y, x]`` outside the ROI and ``dyn[t, y - oy, x - ox]`` inside it.
-    ``pot`` (float64) carries the membrane potential between calls. With ``epc > 0``
-    (electrons per unit charge) the charge is shot-noisy; the random stream of row ``y`` at
-    step ``t0 + t`` is seeded from ``(seed, t0 + t, y)``, so results do not depend on threads
-    or chunking.
+    ``light`` (:class:`_Light`) gives the intensity, ``pixels`` (:class:`_Pixels`) the maps;
+    ``pot`` carries the membrane potential between calls. With ``shot.epc > 0`` the charge
+    is shot-noisy (:class:`_Shot`); the random stream of row ``y`` at step ``t0 + t`` is
+    seeded from ``(seed, t0 + t, y)``, so results do not depend on threads or chunking.
     """
+    bg, dyn, oy, ox = light
+    epc, seed, t0 = shot
     n, h, w = out.shape
     rh = dyn.shape[1]
     rw = dyn.shape[2]
@@ -285,27 +308,24 @@ def _integrate(bg, dyn, oy, ox, gain, dark, thr, pot, out, epc, seed, t0):  # pr
         iy = y - oy
         in_roi = 0 <= iy < rh and rw > 0 and dyn.shape[0] >= n
         bgy = bg[y]
-        gy = gain[y]
-        dy = dark[y]
-        ty = thr[y]
-        py = pot[y]
+        row = _Pixels(pixels.gain[y], pixels.dark[y], pixels.thr[y], pixels.pot[y])
         for t in range(n):
             oyt = out[t, y]
             if epc > 0.0:
                 key = np.uint64(t0 + t) * GOLDEN + np.uint64(y)
                 st = mix64(seed ^ mix64(key))
                 if in_roi:
-                    st = _fire_shot(bgy, 0, gy, dy, ty, py, oyt, 0, ox, epc, st)
-                    st = _fire_shot(dyn[t, iy], ox, gy, dy, ty, py, oyt, ox, ox + rw, epc, st)
-                    st = _fire_shot(bgy, 0, gy, dy, ty, py, oyt, ox + rw, w, epc, st)
+                    st = _fire_shot(bgy, 0, row, oyt, 0, ox, epc, st)
+                    st = _fire_shot(dyn[t, iy], ox, row, oyt, ox, ox + rw, epc, st)
+                    st = _fire_shot(bgy, 0, row, oyt, ox + rw, w, epc, st)
                 else:
-                    st = _fire_shot(bgy, 0, gy, dy, ty, py, oyt, 0, w, epc, st)
+                    st = _fire_shot(bgy, 0, row, oyt, 0, w, epc, st)
             elif in_roi:
-                _fire(bgy, 0, gy, dy, ty, py, oyt, 0, ox)
-                _fire(dyn[t, iy], ox, gy, dy, ty, py, oyt, ox, ox + rw)
-                _fire(bgy, 0, gy, dy, ty, py, oyt, ox + rw, w)
+                _fire(bgy, 0, row, oyt, 0, ox)
+                _fire(dyn[t, iy], ox, row, oyt, ox, ox + rw)
+                _fire(bgy, 0, row, oyt, ox + rw, w)
             else:
-                _fire(bgy, 0, gy, dy, ty, py, oyt, 0, w)
+                _fire(bgy, 0, row, oyt, 0, w)
     return out
 
 
@@ -413,18 +433,14 @@ class Sensor:
             b = min(n, a + _CHUNK)
             dyn, _ = self.scene.render_roi(self.t, b - a)
             _integrate(
-                self.scene.background,
-                dyn,
-                y0,
-                x0,
-                self.gain_map,
-                self.dark_map,
-                self.threshold_map,
-                self._pot,
+                _Light(self.scene.background, dyn, y0, x0),
+                _Pixels(self.gain_map, self.dark_map, self.threshold_map, self._pot),
+                _Shot(
+                    self.noise.electrons_per_spike / self.threshold,
+                    self._stream_seed,
+                    np.int64(self.t),
+                ),
                 out[a:b],
-                self.noise.electrons_per_spike / self.threshold,
-                self._stream_seed,
-                np.int64(self.t),
             )
             self.t += b - a
         return out
