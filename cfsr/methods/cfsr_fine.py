@@ -13,6 +13,12 @@ the calibration of every default are in docs/methods.md):
    on the 8-bit scale (``mog_gain``: rate shown as 255, 0 = the 99.5th percentile of the CSR
    frame at t), gives the background B, and ``|f_t - B| >= phi0`` marks moving objects (phi0
    kept at least two count quanta of the MOG frames, so dark scenes do not mark noise).
+   ``mog_sides = past`` is the paper's test (f: the MOG frame at t, a ``mog_window``-step
+   TFP). ``both`` (default): f is the span rule over ``mog_span`` centred steps (the MOG
+   frame where t's interval is longer than that span), and an object must also lie further
+   than ``mog_match * phi0`` from the background of the **mirrored history** (TFP frames
+   after t, fed to a second MOG farthest first): a *ghost*, background a mover uncovered
+   within the history, matches it and leaves the fine mask (it stays in PatchMatch's region).
 3. **DAISI** (:mod:`cfsr.methods.daisi`, Eq. 10-14): adjacent-ISI log ratios ``>= phi`` within
    ``daisi_span`` steps of t mark the edges of moving objects.
 4. **Fine mask**: the union of the coarse mask, the MOG objects and the DAISI edges, closed with
@@ -56,6 +62,7 @@ from numba import njit, prange
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
+    count_between,
     count_range,
     isi_in_words,
     next_spike,
@@ -132,6 +139,33 @@ FINE_PARAMS: dict[str, Param] = {
     ),
     "mog_gain": Param(
         0.0, "spikes/step", "rate shown as 255 for MOG (0: auto)", minimum=0, maximum=1.0
+    ),
+    # Eq. 9 against the past alone marks the background a mover left within the history (a
+    # ghost: B is the mover) and, on the frame at t, the mover's 64-step trail; "both" asks
+    # the sharp rate at t to differ from the background before t and from the background
+    # of the mirrored history after t (docs/methods.md, "Two-sided objects")
+    "mog_sides": Param(
+        "both",
+        "",
+        "Eq. 9's test: past (the paper: the MOG frame at t against the background of the "
+        "history before t) or both (the rate over mog_span centred steps at t against the "
+        "background of the history before t and of its mirror after t)",
+        choices=("past", "both"),
+    ),
+    "mog_span": Param(
+        16,
+        "steps",
+        "both: centred span of the rate at t compared with the backgrounds (steady span rule)",
+        minimum=2,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "mog_match": Param(
+        0.5,
+        "",
+        "both: a pixel within mog_match * phi0 of the background after t is background (a "
+        "ghost the past's background still holds as the mover); 0: no test after t",
+        minimum=0,
+        maximum=1.0,
     ),
     "phi0": Param(
         20.0,
@@ -211,6 +245,7 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
         **CSR_PRESETS["paper"],
         "mog_estimator": "tfp",
+        "mog_sides": "past",
         "phi0": 50.0,
         "phi": 4.0,
         "daisi_span": 0,
@@ -219,7 +254,7 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
         "pm_guide": 0,
         "pm_sigma": 0.0,
     },
-    "simulated": {**CSR_PRESETS["simulated"], "mog_estimator": "tfp"},
+    "simulated": {**CSR_PRESETS["simulated"], "mog_estimator": "tfp", "mog_sides": "past"},
 }
 
 
@@ -233,10 +268,32 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
         cb, hb + (p["mog_frames"] - 1) * p["mog_stride"], pm + reach, p["daisi_span"] + reach
     )
     after = max(ca, ha, pm + reach, p["daisi_span"] + reach)
+    if two_sided(p):  # the mirrored history after t and the sharp rate at t
+        before = max(before, sharp_span(p)[0])
+        after = max(after, future_reach(p), sharp_span(p)[1])
     if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
         _, tfp_end = tfp_span(0, 1 << 62, static_length(p), p["tfp_mode"])  # steps after 0, +1
         before = max(before, 2 * p["static_window"] - tfp_end)
     return before, after
+
+
+def two_sided(p: Mapping[str, Any]) -> bool:
+    """Whether Eq. 9 tests the sharp rate at t against both backgrounds (``mog_sides``)."""
+    return p.get("mog_sides", "past") == "both"
+
+
+def sharp_span(p: Mapping[str, Any]) -> tuple[int, int]:
+    """Steps before/after t that the sharp rate at t reads (``mog_span`` centred, the TFI's
+    ``max_isi`` range for a pixel with fewer than two spikes in it)."""
+    span = int(p["mog_span"])
+    reach = int(p["max_isi"])
+    return max(span // 2, reach), max(span - span // 2 - 1, reach)
+
+
+def future_reach(p: Mapping[str, Any]) -> int:
+    """Steps after t that the mirrored history reads: frames ``[t + k * mog_stride, t + k *
+    mog_stride + mog_window)``, ``k = 0 .. mog_frames - 1``."""
+    return (int(p["mog_frames"]) - 1) * int(p["mog_stride"]) + int(p["mog_window"]) - 1
 
 
 # --------------------------------------------------------------------------- fused scans
@@ -456,9 +513,12 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     # the words cover both passes (the second reads TFI intervals up to max_isi around ends)
     lo = max(0, min(u_lo, int(ta.min()), pa, d_lo, int(ends[0]) - m))
     hi = min(n, max(u_hi, int(tb.max()), pb, d_hi, int(ends[-1]) + m + 1))
-    if uses_steady(p):  # the steady rules read the same words (fine_stage)
+    if uses_steady(p) or two_sided(p):  # the steady rules read the same words (fine_stage)
         s_lo, s_hi = steady_range(n, center, m)
         lo, hi = min(lo, s_lo), max(hi, s_hi)
+        if two_sided(p):  # and the sharp rate at t
+            s_lo, s_hi = tfp_span(center, n, int(p["mog_span"]), "centred")
+            lo, hi = max(0, min(lo, s_lo)), min(n, max(hi, s_hi))
     k = ends.size
     # the K history TFP windows and the one at t, as indices into their sorted distinct edges
     wins = np.concatenate([np.stack([ta, tb], 1), [[pa, pb]]]).astype(np.int64)
@@ -576,12 +636,20 @@ def fine_stage(
     hs = _history(src, center, p)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
     tfi_at_t = hs["tfi"]
-    if uses_steady(p):  # the intervals around t: steady coarse mask and static check
-        # from the history scan's words, before anything else reuses its scratch store
-        st = steady_parts(src, center, p, words=hs["words"], static=False)
+    sharp = None  # Eq. 9's f under mog_sides = both: the span rule over mog_span steps at t
+    if uses_steady(p) or two_sided(p):  # the intervals around t: steady coarse mask, static
+        # check, sharp rate; from the history scan's words, before anything else reuses its
+        # scratch store
+        q = p
+        if two_sided(p):  # CFSR has no dynamic estimator of its own: the span rule at t
+            q = {**p, "dynamic_estimator": "steady", "dynamic_span": int(p["mog_span"])}
+        st = steady_parts(src, center, q, words=hs["words"], static=False)
         coarse = coarse if st.mask is None else st.mask
         tfp = static_checked(tfp, st.isi, st.noise, p)
         tfi_t = (1.0 / st.isi).astype(np.float32)  # the same numbers as _tfi_at
+        if two_sided(p):  # the span rule needs spikes in the span: a pixel whose interval
+            # at t is longer than the span keeps the MOG frame at t (Eq. 9's f)
+            sharp = np.where(st.isi < int(p["mog_span"]), st.dynamic, rates[-1])
 
         def tfi_at_t():
             return tfi_t
@@ -598,7 +666,14 @@ def fine_stage(
     quantum = 255.0 / (p["mog_window"] * gain)
     phi0 = max(p["phi0"], 2.0 * quantum)
     hist = p["mog_history"] or p["mog_frames"]
-    objects = _mog_objects(u8, phi0, adaptive, p, hist)
+    current = None if sharp is None else to_u8(sharp, gain)
+    objects = _mog_objects(u8, phi0, adaptive, p, hist, current)
+    match = phi0 * float(p["mog_match"])
+    ghosts = None
+    if current is not None and match > 0 and objects.any():  # a ghost matches the future
+        objects, ghosts = _future_objects(
+            src, center, objects, current, gain, match, adaptive, p, hist
+        )
     # 3. DAISI edges (Eq. 10-14)
     edges = hs["daisi"] >= p["phi"]
     # 4. fine mask
@@ -611,6 +686,11 @@ def fine_stage(
         dilate=p["dilate"],
     )
     masks = {"coarse": coarse, "fine": fine}
+    if ghosts is not None:
+        # the ghosts are background and leave the fine mask, but stay in the region
+        # PatchMatch reconstructs (at zero motion it averages 33 TFI frames there): left to
+        # the static estimate, the car lost 1.1 dB (docs/methods.md, "Two-sided objects")
+        fine = fine | ghosts
     if adaptive and not fine.any():
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles it can
@@ -656,17 +736,30 @@ def fine_stage(
     return rate, masks
 
 
-def _mog_objects(u8: np.ndarray, phi0: float, adaptive: bool, p: Mapping[str, Any], hist: int):
-    """Eq. 8-9 on the history ``u8`` (oldest first).
+def _mog_objects(
+    u8: np.ndarray,
+    phi0: float,
+    adaptive: bool,
+    p: Mapping[str, Any],
+    hist: int,
+    current: np.ndarray | None = None,
+):
+    """Eq. 8-9 on the history ``u8`` (oldest first): ``|f - B| >= phi0`` with f the last
+    history frame, or ``current`` (8-bit, (H, W)) when given.
 
     MOG models every pixel on its own, and its background B lies between the pixel's smallest
-    and largest history value, so ``|f_t - B| >= phi0`` is impossible where the history's range
-    is below phi0. The adaptive pipeline runs MOG only on the bounding box of the pixels whose
-    range reaches phi0 (none: no objects, MOG skipped), with the same result.
+    and largest history value, so ``|f - B| >= phi0`` is impossible where the range of the
+    history and f is below phi0. The adaptive pipeline runs MOG only on the bounding box of
+    the pixels whose range reaches phi0 (none: no objects, MOG skipped), with the same result.
     """
     h, w = u8.shape[1:]
     if adaptive:
-        varies = (u8.max(axis=0).astype(np.int16) - u8.min(axis=0)) >= phi0
+        hi = u8.max(axis=0)
+        lo = u8.min(axis=0)
+        if current is not None:
+            hi = np.maximum(hi, current)
+            lo = np.minimum(lo, current)
+        varies = (hi.astype(np.int16) - lo) >= phi0
         if not varies.any():
             return np.zeros((h, w), bool)
         ys, xs = np.nonzero(varies)
@@ -681,9 +774,96 @@ def _mog_objects(u8: np.ndarray, phi0: float, adaptive: bool, p: Mapping[str, An
         background_ratio=p["mog_ratio"],
         noise_sigma=p["mog_noise"],
     )
+    f = crop[-1] if current is None else current[y0:y1, x0:x1]
     objects = np.zeros((h, w), bool)
-    objects[y0:y1, x0:x1] = mog_objects(crop[-1], background, phi0)
+    objects[y0:y1, x0:x1] = mog_objects(f, background, phi0)
     return objects
+
+
+@njit(parallel=True, cache=True)
+def _crop_counts(packed, geo, lo, hi, starts, length, y0, x0, out):  # pragma: no cover - numba
+    """``out[k, i, j]``: spikes of image pixel ``(y0 + i, x0 + j)`` in steps ``[starts[k],
+    starts[k] + length)`` (all inside ``[lo, hi)``), from the packed frames: the crop's words
+    (:func:`cfsr._words.row_words`, one transpose per 64 steps x 64 pixels) and masked
+    popcounts (:func:`cfsr._words.count_between`)."""
+    k_count, hh, ww = out.shape
+    nw = (hi - lo + 63) >> 6
+    for i in prange(hh):
+        words = np.empty((ww + ROW_PAD, nw), np.uint64)
+        base, step = row_words(packed, geo, lo, hi, y0 + i, x0, x0 + ww, words)
+        for j in range(ww):
+            r = base + step * j
+            for k in range(k_count):
+                a = starts[k]
+                out[k, i, j] = count_between(words, r, lo, a, a + length)
+    return out
+
+
+def _box(mask: np.ndarray, adaptive: bool) -> tuple[int, int, int, int]:
+    """The bounding box ``(y0, y1, x0, x1)`` of a non-empty ``mask`` (adaptive), or the frame."""
+    if not adaptive:
+        return 0, mask.shape[0], 0, mask.shape[1]
+    ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    return int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
+
+
+def _future_objects(
+    src: PackedWindow,
+    center: int,
+    objects: np.ndarray,
+    current: np.ndarray,
+    gain: float,
+    match: float,
+    adaptive: bool,
+    p: Mapping[str, Any],
+    hist: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Split ``objects`` by the **mirrored history**; returns ``(objects, ghosts)``.
+
+    The mirrored history: TFP frames (Eq. 4) over ``[t + k * mog_stride, t + k * mog_stride +
+    mog_window)``, ``k = mog_frames - 1 .. 0``, fed to a fresh MOG farthest first (time
+    reversed, so the last frame is the one at t; frames past the window's end dropped), its
+    background B as :func:`cfsr.methods.mog.mog_background`'s. A ghost -- background that a
+    mover uncovered within the history before t, which that history's B still holds as the
+    mover -- is background for the whole history after t: where the sharp rate at t
+    (``current``, 8-bit) lies within ``match`` levels (half of phi0 by default) of this B the
+    pixel is a ghost and leaves ``objects``. A pixel the mover covers at t lies near neither
+    background, except by chance on a moving texture, hence the tighter ``match``. The
+    adaptive pipeline reads only the bounding box of ``objects`` (MOG is per pixel: the same
+    result).
+    """
+    n = src.n
+    win, stride = int(p["mog_window"]), int(p["mog_stride"])
+    starts = [
+        center + k * stride
+        for k in range(int(p["mog_frames"]) - 1, -1, -1)
+        if center + k * stride + win <= n
+    ]
+    if not starts:  # no frame after t in the window: the past test alone
+        return objects, np.zeros_like(objects)
+    y0, y1, x0, x1 = _box(objects, adaptive)
+    counts = _crop_counts(
+        src.packed,
+        src.geo,
+        min(starts),
+        max(starts) + win,
+        np.asarray(starts, np.int64),
+        win,
+        y0,
+        x0,
+        np.empty((len(starts), y1 - y0, x1 - x0), np.int32),
+    )
+    u8 = to_u8(counts.astype(np.float32) / np.float32(win), gain)
+    _, background = mog_background(
+        u8,
+        history=hist,
+        nmixtures=p["mog_mixtures"],
+        background_ratio=p["mog_ratio"],
+        noise_sigma=p["mog_noise"],
+    )
+    out = objects.copy()
+    out[y0:y1, x0:x1] &= mog_objects(current[y0:y1, x0:x1], background, match)
+    return out, objects & ~out
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
