@@ -367,7 +367,7 @@ def test_future_background_splits_ghosts_from_objects():
     """Eq. 9 against the background after t (``mog_sides = both``): a pixel a mover left
     before t matches it (a ghost), a pixel the mover covers at t does not."""
     from cfsr._words import PackedWindow
-    from cfsr.methods.cfsr_fine import _future_objects
+    from cfsr.methods.cfsr_fine import _future_objects, _Sharp
     from cfsr.methods.registry import get_method, resolve_params
 
     n, c = 1000, 600
@@ -375,14 +375,15 @@ def test_future_background_splits_ghosts_from_objects():
     inten[: c - 50, 0, 0] = 0.8  # uncovered 50 steps before t: background from then on
     inten[c - 20 : c + 20, 0, 1] = 0.8  # covered at t, background again 20 steps later
     src = PackedWindow.from_frames(if_spikes(inten, n, v0=0.5))
-    current = to_u8(np.array([[0.1, 0.4]], np.float32), 0.5)  # rate at t: 51 and 204 levels
+    rate = np.array([[0.1, 0.4]], np.float32)  # rate at t: 51 and 204 levels at gain 0.5
+    sharp = _Sharp(rate, np.ones((1, 2), np.int32), rate, 16)
     p = resolve_params(get_method("cfsr"))
     for adaptive in (True, False):
-        objects, ghosts = _future_objects(
-            src, c, np.ones((1, 2), bool), current, 0.5, 10.0, adaptive, p, 12
-        )
-        assert objects.tolist() == [[False, True]]
-        assert ghosts.tolist() == [[True, False]]
+        keep = _future_objects(src, c, np.ones((1, 2), bool), sharp, 0.5, 10.0, adaptive, p, 12)
+        assert keep.tolist() == [[False, True]]
+        # a pixel that is no candidate stays out
+        keep = _future_objects(src, c, np.array([[False, True]]), sharp, 0.5, 10.0, adaptive, p, 12)
+        assert keep.tolist() == [[False, True]]
 
 
 def test_two_sided_objects_drop_the_ghost_behind_a_mover():

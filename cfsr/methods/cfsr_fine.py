@@ -159,6 +159,18 @@ FINE_PARAMS: dict[str, Param] = {
         minimum=2,
         maximum=MAX_WINDOW_STEPS // 2,
     ),
+    # half the frames of the history before t over about the same reach: the second MOG
+    # costs in proportion to its frames, and 12 x 32 steps gave the same masks within 0.003
+    "mog_future_frames": Param(
+        6, "frames", "both: TFP frames of the mirrored history after t", minimum=1, maximum=256
+    ),
+    "mog_future_stride": Param(
+        64,
+        "steps",
+        "both: steps between the mirrored history's frames",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
     "mog_match": Param(
         0.5,
         "",
@@ -291,9 +303,10 @@ def sharp_span(p: Mapping[str, Any]) -> tuple[int, int]:
 
 
 def future_reach(p: Mapping[str, Any]) -> int:
-    """Steps after t that the mirrored history reads: frames ``[t + k * mog_stride, t + k *
-    mog_stride + mog_window)``, ``k = 0 .. mog_frames - 1``."""
-    return (int(p["mog_frames"]) - 1) * int(p["mog_stride"]) + int(p["mog_window"]) - 1
+    """Steps after t that the mirrored history reads: frames ``[t + k * s, t + k * s +
+    mog_window)``, ``s = mog_future_stride``, ``k = 0 .. mog_future_frames - 1``."""
+    k, s = int(p["mog_future_frames"]), int(p["mog_future_stride"])
+    return (k - 1) * s + int(p["mog_window"]) - 1
 
 
 # --------------------------------------------------------------------------- fused scans
@@ -636,7 +649,7 @@ def fine_stage(
     hs = _history(src, center, p)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
     tfi_at_t = hs["tfi"]
-    sharp = None  # Eq. 9's f under mog_sides = both: the span rule over mog_span steps at t
+    sharp = None  # Eq. 9's f under mog_sides = both (_Sharp)
     if uses_steady(p) or two_sided(p):  # the intervals around t: steady coarse mask, static
         # check, sharp rate; from the history scan's words, before anything else reuses its
         # scratch store
@@ -647,9 +660,8 @@ def fine_stage(
         coarse = coarse if st.mask is None else st.mask
         tfp = static_checked(tfp, st.isi, st.noise, p)
         tfi_t = (1.0 / st.isi).astype(np.float32)  # the same numbers as _tfi_at
-        if two_sided(p):  # the span rule needs spikes in the span: a pixel whose interval
-            # at t is longer than the span keeps the MOG frame at t (Eq. 9's f)
-            sharp = np.where(st.isi < int(p["mog_span"]), st.dynamic, rates[-1])
+        if two_sided(p):
+            sharp = _Sharp(st.dynamic, st.isi, rates[-1], int(p["mog_span"]))
 
         def tfi_at_t():
             return tfi_t
@@ -666,14 +678,17 @@ def fine_stage(
     quantum = 255.0 / (p["mog_window"] * gain)
     phi0 = max(p["phi0"], 2.0 * quantum)
     hist = p["mog_history"] or p["mog_frames"]
-    current = None if sharp is None else to_u8(sharp, gain)
-    objects = _mog_objects(u8, phi0, adaptive, p, hist, current)
+    objects = _mog_objects(u8, phi0, adaptive, p, hist, sharp, gain)
     match = phi0 * float(p["mog_match"])
     ghosts = None
-    if current is not None and match > 0 and objects.any():  # a ghost matches the future
-        objects, ghosts = _future_objects(
-            src, center, objects, current, gain, match, adaptive, p, hist
-        )
+    if sharp is not None and match > 0:  # a ghost matches the background after t
+        # only objects outside the coarse mask can change the fine mask (the union is what
+        # is regularised), so only they are tested
+        cand = objects & ~coarse
+        if cand.any():
+            keep = _future_objects(src, center, cand, sharp, gain, match, adaptive, p, hist)
+            ghosts = cand & ~keep
+            objects = (objects & coarse) | keep
     # 3. DAISI edges (Eq. 10-14)
     edges = hs["daisi"] >= p["phi"]
     # 4. fine mask
@@ -736,30 +751,61 @@ def fine_stage(
     return rate, masks
 
 
+class _Sharp(NamedTuple):
+    """Eq. 9's f under ``mog_sides = both``: the span rule over ``span`` centred steps at t
+    (``rate``), where t's interval (``isi``, steps) is shorter than the span; the MOG frame
+    at t (``frame``) elsewhere, where the span holds fewer than two spikes (its TFI cost the
+    dim scene's fine IoU 0.05). Rates in spikes per step, (H, W)."""
+
+    rate: np.ndarray
+    isi: np.ndarray
+    frame: np.ndarray
+    span: int
+
+    def u8(self, box: tuple[int, int, int, int], gain: float) -> np.ndarray:
+        """f on the crop ``box = (y0, y1, x0, x1)`` on MOG's 8-bit scale (``to_u8``'s
+        numbers, in NumPy: a crop is too little work for a parallel kernel's start-up)."""
+        y0, y1, x0, x1 = box
+        r = np.where(
+            self.isi[y0:y1, x0:x1] < self.span,
+            self.rate[y0:y1, x0:x1],
+            self.frame[y0:y1, x0:x1],
+        )
+        return _u8(r, gain)
+
+
+def _u8(rates: np.ndarray, gain: float) -> np.ndarray:
+    """:func:`cfsr.methods.mog.to_u8` for finite rates >= 0 and a gain > 0, in NumPy."""
+    q = np.rint(rates.astype(np.float32) * np.float32(255.0 / gain))
+    return np.minimum(q, np.float32(255)).astype(np.uint8)
+
+
 def _mog_objects(
     u8: np.ndarray,
     phi0: float,
     adaptive: bool,
     p: Mapping[str, Any],
     hist: int,
-    current: np.ndarray | None = None,
+    sharp: _Sharp | None = None,
+    gain: float = 1.0,
 ):
     """Eq. 8-9 on the history ``u8`` (oldest first): ``|f - B| >= phi0`` with f the last
-    history frame, or ``current`` (8-bit, (H, W)) when given.
+    history frame, or the sharp rate at t (``sharp``, put on the 8-bit scale with ``gain``).
 
     MOG models every pixel on its own, and its background B lies between the pixel's smallest
-    and largest history value, so ``|f - B| >= phi0`` is impossible where the range of the
-    history and f is below phi0. The adaptive pipeline runs MOG only on the bounding box of
-    the pixels whose range reaches phi0 (none: no objects, MOG skipped), with the same result.
+    and largest history value, so ``|f - B| >= phi0`` with f in the history is impossible where
+    the history's range is below phi0. A sharp f outside the history could pass there, but
+    such a pixel has not seen a mover in its history (its light changed only within the last
+    few steps) and is left out too: f's noise would otherwise scatter objects, and the
+    pixels MOG must run on, over the frame. The adaptive pipeline runs MOG only on the
+    bounding box of the pixels whose range reaches phi0 (none: no objects, MOG skipped),
+    with the same result.
     """
     h, w = u8.shape[1:]
+    varies = None
+    if adaptive or sharp is not None:
+        varies = (u8.max(axis=0).astype(np.int16) - u8.min(axis=0)) >= phi0
     if adaptive:
-        hi = u8.max(axis=0)
-        lo = u8.min(axis=0)
-        if current is not None:
-            hi = np.maximum(hi, current)
-            lo = np.minimum(lo, current)
-        varies = (hi.astype(np.int16) - lo) >= phi0
         if not varies.any():
             return np.zeros((h, w), bool)
         ys, xs = np.nonzero(varies)
@@ -774,28 +820,37 @@ def _mog_objects(
         background_ratio=p["mog_ratio"],
         noise_sigma=p["mog_noise"],
     )
-    f = crop[-1] if current is None else current[y0:y1, x0:x1]
     objects = np.zeros((h, w), bool)
-    objects[y0:y1, x0:x1] = mog_objects(f, background, phi0)
+    if sharp is None:
+        objects[y0:y1, x0:x1] = mog_objects(crop[-1], background, phi0)
+    else:
+        found = mog_objects(sharp.u8((y0, y1, x0, x1), gain), background, phi0)
+        objects[y0:y1, x0:x1] = found & varies[y0:y1, x0:x1]
     return objects
 
 
 @njit(parallel=True, cache=True)
-def _crop_counts(packed, geo, lo, hi, starts, length, y0, x0, out):  # pragma: no cover - numba
-    """``out[k, i, j]``: spikes of image pixel ``(y0 + i, x0 + j)`` in steps ``[starts[k],
-    starts[k] + length)`` (all inside ``[lo, hi)``), from the packed frames: the crop's words
+def _crop_counts(packed, geo, lo, hi, starts, length, y0, x0, xa, xb, out):
+    # pragma: no cover - numba
+    """``out[k, i, x - x0]``: spikes of image pixel ``(y0 + i, x)``, ``xa[i] <= x <
+    xb[i]`` (a row with ``xa[i] >= xb[i]`` is skipped), in steps ``[starts[k], starts[k] +
+    length)`` (all inside ``[lo, hi)``), from the packed frames: those pixels' words
     (:func:`cfsr._words.row_words`, one transpose per 64 steps x 64 pixels) and masked
-    popcounts (:func:`cfsr._words.count_between`)."""
+    popcounts (:func:`cfsr._words.count_between`). Other entries are left as they are."""
     k_count, hh, ww = out.shape
     nw = (hi - lo + 63) >> 6
     for i in prange(hh):
-        words = np.empty((ww + ROW_PAD, nw), np.uint64)
-        base, step = row_words(packed, geo, lo, hi, y0 + i, x0, x0 + ww, words)
-        for j in range(ww):
-            r = base + step * j
+        a_x = xa[i]
+        b_x = xb[i]
+        if a_x >= b_x:
+            continue
+        words = np.empty((b_x - a_x + ROW_PAD, nw), np.uint64)
+        base, step = row_words(packed, geo, lo, hi, y0 + i, a_x, b_x, words)
+        for x in range(a_x, b_x):
+            r = base + step * (x - a_x)
             for k in range(k_count):
                 a = starts[k]
-                out[k, i, j] = count_between(words, r, lo, a, a + length)
+                out[k, i, x - x0] = count_between(words, r, lo, a, a + length)
     return out
 
 
@@ -810,38 +865,46 @@ def _box(mask: np.ndarray, adaptive: bool) -> tuple[int, int, int, int]:
 def _future_objects(
     src: PackedWindow,
     center: int,
-    objects: np.ndarray,
-    current: np.ndarray,
+    cand: np.ndarray,
+    sharp: _Sharp,
     gain: float,
     match: float,
     adaptive: bool,
     p: Mapping[str, Any],
     hist: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split ``objects`` by the **mirrored history**; returns ``(objects, ghosts)``.
+) -> np.ndarray:
+    """The candidate objects ``cand`` that are not ghosts by the **mirrored history**.
 
-    The mirrored history: TFP frames (Eq. 4) over ``[t + k * mog_stride, t + k * mog_stride +
-    mog_window)``, ``k = mog_frames - 1 .. 0``, fed to a fresh MOG farthest first (time
-    reversed, so the last frame is the one at t; frames past the window's end dropped), its
-    background B as :func:`cfsr.methods.mog.mog_background`'s. A ghost -- background that a
+    The mirrored history: TFP frames (Eq. 4) over ``[t + k * s, t + k * s + mog_window)``, ``s =
+    mog_future_stride``, ``k = mog_future_frames - 1 .. 0``, fed to a fresh MOG farthest first
+    (time reversed, so the last frame is the one at t; frames past the window's end dropped),
+    its background B as :func:`cfsr.methods.mog.mog_background`'s. A ghost -- background that a
     mover uncovered within the history before t, which that history's B still holds as the
-    mover -- is background for the whole history after t: where the sharp rate at t
-    (``current``, 8-bit) lies within ``match`` levels (half of phi0 by default) of this B the
-    pixel is a ghost and leaves ``objects``. A pixel the mover covers at t lies near neither
-    background, except by chance on a moving texture, hence the tighter ``match``. The
-    adaptive pipeline reads only the bounding box of ``objects`` (MOG is per pixel: the same
-    result).
+    mover -- is background for the whole history after t: where the sharp rate at t lies
+    within ``match`` levels (half of phi0 by default) of this B the pixel is a ghost. A pixel
+    the mover covers at t lies near neither background, except by chance on a moving texture,
+    hence the tighter ``match``.
+
+    The frames are counted on the packed bytes of the candidates' bounding box (the whole
+    frame when not ``adaptive``), and MOG, which models every pixel on its own, runs on the
+    candidates alone, gathered into one row: its cost follows their number.
     """
     n = src.n
-    win, stride = int(p["mog_window"]), int(p["mog_stride"])
+    win, stride = int(p["mog_window"]), int(p["mog_future_stride"])
     starts = [
         center + k * stride
-        for k in range(int(p["mog_frames"]) - 1, -1, -1)
+        for k in range(int(p["mog_future_frames"]) - 1, -1, -1)
         if center + k * stride + win <= n
     ]
-    if not starts:  # no frame after t in the window: the past test alone
-        return objects, np.zeros_like(objects)
-    y0, y1, x0, x1 = _box(objects, adaptive)
+    if not starts:  # no frame after t in the window: no ghost can be told
+        return cand.copy()
+    box = _box(cand, adaptive)
+    y0, y1, x0, x1 = box
+    sel = cand[y0:y1, x0:x1]
+    # per row, the columns from its first to its last candidate (none: the row is skipped)
+    rows = sel.any(axis=1)
+    xa = np.where(rows, x0 + sel.argmax(axis=1), x0).astype(np.int64)
+    xb = np.where(rows, x1 - sel[:, ::-1].argmax(axis=1), x0).astype(np.int64)
     counts = _crop_counts(
         src.packed,
         src.geo,
@@ -851,19 +914,21 @@ def _future_objects(
         win,
         y0,
         x0,
-        np.empty((len(starts), y1 - y0, x1 - x0), np.int32),
+        xa,
+        xb,
+        np.zeros((len(starts), y1 - y0, x1 - x0), np.int32),
     )
-    u8 = to_u8(counts.astype(np.float32) / np.float32(win), gain)
+    frames = _u8(counts[:, sel].astype(np.float32) / np.float32(win), gain)
     _, background = mog_background(
-        u8,
+        frames[:, None, :],
         history=hist,
         nmixtures=p["mog_mixtures"],
         background_ratio=p["mog_ratio"],
         noise_sigma=p["mog_noise"],
     )
-    out = objects.copy()
-    out[y0:y1, x0:x1] &= mog_objects(current[y0:y1, x0:x1], background, match)
-    return out, objects & ~out
+    keep = np.zeros_like(cand)
+    keep[y0:y1, x0:x1][sel] = mog_objects(sharp.u8(box, gain)[sel], background[0], match)
+    return keep
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
