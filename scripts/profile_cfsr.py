@@ -1,6 +1,7 @@
 """Where one CFSR frame's time goes: stage timings on a simulated scene (400 x 250).
 
-Usage: ``python scripts/profile_cfsr.py [scene] [--radius R] [--always-full] [--no-keep-heap]``
+Usage: ``python scripts/profile_cfsr.py [scene] [--radius R] [--always-full] [--no-keep-heap]
+[--set KEY=VALUE ...]``
 (scene: disk, fan, car, static, lowlight; default disk; ``--radius`` sets the disk's radius,
 240 covers the whole frame as in ``cfsr bench --sweep``). Times the newest computable step of
 a 4096-step recording through the streaming reconstructor, as ``cfsr bench --throughput``
@@ -27,6 +28,7 @@ STAGES = (
     "_dynamic_kernel",
     "atsr_fuse",
     "_mog_objects",
+    "_future_objects",
     "fine_mask",
     "pm_frames",
     "patchmatch_fuse",
@@ -43,6 +45,13 @@ def main() -> None:
     ap.add_argument("--radius", type=int, help="disk radius, pixels (the sweep's 56/98/240)")
     ap.add_argument(
         "--always-full", action="store_true", help="adaptive=False: every stage on every pixel"
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a cfsr parameter (repeatable), e.g. mog_sides=past",
     )
     args = ap.parse_args()
     if not args.no_keep_heap:
@@ -65,7 +74,10 @@ def main() -> None:
     opts = {} if args.radius is None else {"radius": args.radius}
     scene = make_scene(args.scene, height=250, width=400, **opts)
     sim = simulate(scene, 4096, seed=0)
-    params = {"adaptive": not args.always_full}
+    params: dict[str, object] = {"adaptive": not args.always_full}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        params[key] = value
     sr = StreamingReconstructor("cfsr", Layout(400, 250), params=params, slack=4096)
     sr.push(pack_frames(sim.spikes), 0)
     t = sr.latest_step()

@@ -8,7 +8,8 @@ outputs at steps 800, 1000 and 1200, display = rate / rate_scale * 255. Claims, 
   mask, without noise and (disk, fan, car) with temporal shot noise;
 * CSR is above the best TFP window over the whole frame on every scene;
 * the coarse mask's IoU with the true motion is at least 0.6 on disk, fan and car; the fine
-  mask's at least 0.8 on disk (fan and car are below: expected failures, see docs/methods.md).
+  mask's at least 0.8 on disk and car (the fan is below: an expected failure, see
+  docs/methods.md).
 """
 
 from __future__ import annotations
@@ -81,15 +82,17 @@ def test_coarse_mask_finds_the_motion(table, scene):
         assert table[(name, scene)]["iou_coarse"] >= 0.6, (name, scene)
 
 
-def test_fine_mask_finds_the_disk(table):
-    assert table[("cfsr", "disk")]["iou_fine"] >= 0.8
+@pytest.mark.parametrize("scene", ["disk", "car"])
+def test_fine_mask_finds_the_motion(table, scene):
+    assert table[("cfsr", scene)]["iou_fine"] >= 0.8
 
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 13 open: fine-mask IoU 0.46 (fan) and 0.73 (car); MOG marks the background a "
-    "blade or the car left within its 352-step history (docs/methods.md)",
+    reason="issue 13 open: fine-mask IoU 0.46 on the fan. Its blades cover about half of "
+    "every pixel's history, so neither MOG background (before or after t) is the gravel, "
+    "and the coarse mask smears each blade by +-24 steps: even the true motion as MOG's "
+    "objects, joined with the coarse mask, reaches 0.64-0.71 (docs/methods.md)",
 )
-@pytest.mark.parametrize("scene", ["fan", "car"])
-def test_fine_mask_iou_on_fan_and_car(table, scene):
-    assert table[("cfsr", scene)]["iou_fine"] >= 0.8
+def test_fine_mask_iou_on_the_fan(table):
+    assert table[("cfsr", "fan")]["iou_fine"] >= 0.8

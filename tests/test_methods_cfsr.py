@@ -358,3 +358,66 @@ def test_multi_center_kernels_equal_single_center():
         for k, c in enumerate(cs):
             assert np.array_equal(a[k], tfi_rate(s, c, max_isi=m)), trial
             assert np.array_equal(b[k], adaptive_rate(s, c, threshold=3, max_window=m)), trial
+
+
+# --------------------------------------------------------------------------- two-sided objects
+
+
+def test_future_background_splits_ghosts_from_objects():
+    """Eq. 9 against the background after t (``mog_sides = both``): a pixel a mover left
+    before t matches it (a ghost), a pixel the mover covers at t does not."""
+    from cfsr._words import PackedWindow
+    from cfsr.methods.cfsr_fine import _future_objects, _Sharp
+    from cfsr.methods.registry import get_method, resolve_params
+
+    n, c = 1000, 600
+    inten = np.full((n, 1, 2), 0.2)
+    inten[: c - 50, 0, 0] = 0.8  # uncovered 50 steps before t: background from then on
+    inten[c - 20 : c + 20, 0, 1] = 0.8  # covered at t, background again 20 steps later
+    src = PackedWindow.from_frames(if_spikes(inten, n, v0=0.5))
+    rate = np.array([[0.1, 0.4]], np.float32)  # rate at t: 51 and 204 levels at gain 0.5
+    sharp = _Sharp(rate, np.ones((1, 2), np.int32), rate, 16)
+    p = resolve_params(get_method("cfsr"))
+    for adaptive in (True, False):
+        keep = _future_objects(src, c, np.ones((1, 2), bool), sharp, 0.5, 10.0, adaptive, p, 12)
+        assert keep.tolist() == [[False, True]]
+        # a pixel that is no candidate stays out
+        keep = _future_objects(src, c, np.array([[False, True]]), sharp, 0.5, 10.0, adaptive, p, 12)
+        assert keep.tolist() == [[False, True]]
+
+
+def test_two_sided_objects_drop_the_ghost_behind_a_mover():
+    """A block sliding right leaves a trail the history before t still holds as the block:
+    Eq. 9 on the past alone (the paper, ``mog_sides = past``) marks it, both sides do not."""
+    h, w, n, t = 32, 96, 1200, 700
+    rng = np.random.default_rng(3)
+    bg = 0.15 + 0.1 * rng.random((h, w))
+    frames = np.repeat(bg[None], n, axis=0)
+    truth = np.zeros((n, h, w), bool)
+    block = 0.7 + 0.2 * rng.random((16, 24))
+    for s in range(n):
+        x = int(10 + 0.05 * s)
+        frames[s, 8:24, x : x + 24] = block
+        truth[s, 8:24, x : x + 24] = True
+    spikes = if_spikes(frames, n)
+    fine = {}
+    for sides in ("past", "both"):
+        _, m = cfsr.reconstruct(spikes, "cfsr", [t], return_masks=True, mog_sides=sides)
+        fine[sides] = m["fine"][0]
+    tr = truth[t]
+    iou = {k: (f & tr).sum() / (f | tr).sum() for k, f in fine.items()}
+    assert iou["both"] > iou["past"] + 0.05, iou
+    assert (fine["both"] & tr).sum() >= 0.95 * tr.sum()  # the block itself stays
+    x = int(10 + 0.05 * t)
+    trail = np.zeros((h, w), bool)
+    trail[8:24, x - 14 : x - 3] = True  # left 3-14 px (60-280 steps) before t: beyond dilate
+    assert fine["past"][trail].mean() > 0.5
+    assert fine["both"][trail].mean() < 0.2
+
+
+def test_paper_presets_keep_eq9_on_the_past():
+    ms = cfsr.methods()["cfsr"]
+    assert ms["params"]["mog_sides"]["default"] == "both"
+    assert ms["presets"]["paper"]["mog_sides"] == "past"
+    assert ms["presets"]["simulated"]["mog_sides"] == "past"
+    assert ms["params"]["mog_match"]["range"] and ms["params"]["mog_span"]["range"]

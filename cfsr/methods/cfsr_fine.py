@@ -13,6 +13,12 @@ the calibration of every default are in docs/methods.md):
    on the 8-bit scale (``mog_gain``: rate shown as 255, 0 = the 99.5th percentile of the CSR
    frame at t), gives the background B, and ``|f_t - B| >= phi0`` marks moving objects (phi0
    kept at least two count quanta of the MOG frames, so dark scenes do not mark noise).
+   ``mog_sides = past`` is the paper's test (f: the MOG frame at t, a ``mog_window``-step
+   TFP). ``both`` (default): f is the span rule over ``mog_span`` centred steps (the MOG
+   frame where t's interval is longer than that span), and an object must also lie further
+   than ``mog_match * phi0`` from the background of the **mirrored history** (TFP frames
+   after t, fed to a second MOG farthest first): a *ghost*, background a mover uncovered
+   within the history, matches it and leaves the fine mask (it stays in PatchMatch's region).
 3. **DAISI** (:mod:`cfsr.methods.daisi`, Eq. 10-14): adjacent-ISI log ratios ``>= phi`` within
    ``daisi_span`` steps of t mark the edges of moving objects.
 4. **Fine mask**: the union of the coarse mask, the MOG objects and the DAISI edges, closed with
@@ -57,6 +63,7 @@ from cfsr._isi import search_range
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
+    count_between,
     count_range,
     isi_in_words,
     n_words,
@@ -134,6 +141,45 @@ FINE_PARAMS: dict[str, Param] = {
     ),
     "mog_gain": Param(
         0.0, "spikes/step", "rate shown as 255 for MOG (0: auto)", minimum=0, maximum=1.0
+    ),
+    # Eq. 9 against the past alone marks the background a mover left within the history (a
+    # ghost: B is the mover) and, on the frame at t, the mover's 64-step trail; "both" asks
+    # the sharp rate at t to differ from the background before t and from the background
+    # of the mirrored history after t (docs/methods.md, "Two-sided objects")
+    "mog_sides": Param(
+        "both",
+        "",
+        "Eq. 9's test: past (the paper: the MOG frame at t against the background of the "
+        "history before t) or both (the rate over mog_span centred steps at t against the "
+        "background of the history before t and of its mirror after t)",
+        choices=("past", "both"),
+    ),
+    "mog_span": Param(
+        16,
+        "steps",
+        "both: centred span of the rate at t compared with the backgrounds (steady span rule)",
+        minimum=2,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    # half the frames of the history before t over about the same reach: the second MOG
+    # costs in proportion to its frames, and 12 x 32 steps gave the same masks within 0.003
+    "mog_future_frames": Param(
+        6, "frames", "both: TFP frames of the mirrored history after t", minimum=1, maximum=256
+    ),
+    "mog_future_stride": Param(
+        64,
+        "steps",
+        "both: steps between the mirrored history's frames",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "mog_match": Param(
+        0.5,
+        "",
+        "both: a pixel within mog_match * phi0 of the background after t is background (a "
+        "ghost the past's background still holds as the mover); 0: no test after t",
+        minimum=0,
+        maximum=1.0,
     ),
     "phi0": Param(
         20.0,
@@ -213,6 +259,7 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
         **CSR_PRESETS["paper"],
         "mog_estimator": "tfp",
+        "mog_sides": "past",
         "phi0": 50.0,
         "phi": 4.0,
         "daisi_span": 0,
@@ -221,7 +268,7 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
         "pm_guide": 0,
         "pm_sigma": 0.0,
     },
-    "simulated": {**CSR_PRESETS["simulated"], "mog_estimator": "tfp"},
+    "simulated": {**CSR_PRESETS["simulated"], "mog_estimator": "tfp", "mog_sides": "past"},
 }
 
 
@@ -235,10 +282,33 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
         cb, hb + (p["mog_frames"] - 1) * p["mog_stride"], pm + reach, p["daisi_span"] + reach
     )
     after = max(ca, ha, pm + reach, p["daisi_span"] + reach)
+    if two_sided(p):  # the mirrored history after t and the sharp rate at t
+        before = max(before, sharp_span(p)[0])
+        after = max(after, future_reach(p), sharp_span(p)[1])
     if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
         _, tfp_end = tfp_span(0, 1 << 62, static_length(p), p["tfp_mode"])  # steps after 0, +1
         before = max(before, 2 * p["static_window"] - tfp_end)
     return before, after
+
+
+def two_sided(p: Mapping[str, Any]) -> bool:
+    """Whether Eq. 9 tests the sharp rate at t against both backgrounds (``mog_sides``)."""
+    return p.get("mog_sides", "past") == "both"
+
+
+def sharp_span(p: Mapping[str, Any]) -> tuple[int, int]:
+    """Steps before/after t that the sharp rate at t reads (``mog_span`` centred, the TFI's
+    ``max_isi`` range for a pixel with fewer than two spikes in it)."""
+    span = int(p["mog_span"])
+    reach = int(p["max_isi"])
+    return max(span // 2, reach), max(span - span // 2 - 1, reach)
+
+
+def future_reach(p: Mapping[str, Any]) -> int:
+    """Steps after t that the mirrored history reads: frames ``[t + k * s, t + k * s +
+    mog_window)``, ``s = mog_future_stride``, ``k = 0 .. mog_future_frames - 1``."""
+    k, s = int(p["mog_future_frames"]), int(p["mog_future_stride"])
+    return (k - 1) * s + int(p["mog_window"]) - 1
 
 
 # --------------------------------------------------------------------------- fused scans
@@ -487,9 +557,12 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     # the words cover both passes (the second reads TFI intervals up to max_isi around ends)
     lo = max(0, min(u_lo, int(ta.min()), pa, d_lo, int(ends[0]) - m))
     hi = min(n, max(u_hi, int(tb.max()), pb, d_hi, int(ends[-1]) + m + 1))
-    if uses_steady(p):  # the steady rules read the same words (fine_stage)
+    if uses_steady(p) or two_sided(p):  # the steady rules read the same words (fine_stage)
         s_lo, s_hi = steady_range(n, center, m)
         lo, hi = min(lo, s_lo), max(hi, s_hi)
+        if two_sided(p):  # and the sharp rate at t
+            s_lo, s_hi = tfp_span(center, n, int(p["mog_span"]), "centred")
+            lo, hi = max(0, min(lo, s_lo)), min(n, max(hi, s_hi))
     k = ends.size
     # the K history TFP windows and the one at t, as indices into their sorted distinct edges
     wins = np.concatenate([np.stack([ta, tb], 1), [[pa, pb]]]).astype(np.int64)
@@ -604,12 +677,19 @@ def fine_stage(
     hs = _history(src, center, p)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
     tfi_at_t = hs["tfi"]
-    if uses_steady(p):  # the intervals around t: steady coarse mask and static check
-        # from the history scan's words, before anything else reuses its scratch store
-        st = steady_parts(src, center, p, words=hs["words"], static=False)
+    sharp = None  # Eq. 9's f under mog_sides = both (_Sharp)
+    if uses_steady(p) or two_sided(p):  # the intervals around t: steady coarse mask, static
+        # check, sharp rate; from the history scan's words, before anything else reuses its
+        # scratch store
+        q = p
+        if two_sided(p):  # CFSR has no dynamic estimator of its own: the span rule at t
+            q = {**p, "dynamic_estimator": "steady", "dynamic_span": int(p["mog_span"])}
+        st = steady_parts(src, center, q, words=hs["words"], static=False)
         coarse = coarse if st.mask is None else st.mask
         tfp = static_checked(tfp, st.isi, st.noise, p)
         tfi_t = (1.0 / st.isi).astype(np.float32)  # the same numbers as _tfi_at
+        if two_sided(p):
+            sharp = _Sharp(st.dynamic, st.isi, rates[-1], int(p["mog_span"]))
 
         def tfi_at_t():
             return tfi_t
@@ -626,7 +706,17 @@ def fine_stage(
     quantum = 255.0 / (p["mog_window"] * gain)
     phi0 = max(p["phi0"], 2.0 * quantum)
     hist = p["mog_history"] or p["mog_frames"]
-    objects = _mog_objects(u8, phi0, adaptive, p, hist)
+    objects = _mog_objects(u8, phi0, adaptive, p, hist, sharp, gain)
+    match = phi0 * float(p["mog_match"])
+    ghosts = None
+    if sharp is not None and match > 0:  # a ghost matches the background after t
+        # only objects outside the coarse mask can change the fine mask (the union is what
+        # is regularised), so only they are tested
+        cand = objects & ~coarse
+        if cand.any():
+            keep = _future_objects(src, center, cand, sharp, gain, match, adaptive, p, hist)
+            ghosts = cand & ~keep
+            objects = (objects & coarse) | keep
     # 3. DAISI edges (Eq. 10-14)
     edges = hs["daisi"] >= p["phi"]
     # 4. fine mask
@@ -639,6 +729,11 @@ def fine_stage(
         dilate=p["dilate"],
     )
     masks = {"coarse": coarse, "fine": fine}
+    if ghosts is not None:
+        # the ghosts are background and leave the fine mask, but stay in the region
+        # PatchMatch reconstructs (at zero motion it averages 33 TFI frames there): left to
+        # the static estimate, the car lost 1.1 dB (docs/methods.md, "Two-sided objects")
+        fine = fine | ghosts
     if adaptive and not fine.any():
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles it can
@@ -684,17 +779,61 @@ def fine_stage(
     return rate, masks
 
 
-def _mog_objects(u8: np.ndarray, phi0: float, adaptive: bool, p: Mapping[str, Any], hist: int):
-    """Eq. 8-9 on the history ``u8`` (oldest first).
+class _Sharp(NamedTuple):
+    """Eq. 9's f under ``mog_sides = both``: the span rule over ``span`` centred steps at t
+    (``rate``), where t's interval (``isi``, steps) is shorter than the span; the MOG frame
+    at t (``frame``) elsewhere, where the span holds fewer than two spikes (its TFI cost the
+    dim scene's fine IoU 0.05). Rates in spikes per step, (H, W)."""
+
+    rate: np.ndarray
+    isi: np.ndarray
+    frame: np.ndarray
+    span: int
+
+    def u8(self, box: tuple[int, int, int, int], gain: float) -> np.ndarray:
+        """f on the crop ``box = (y0, y1, x0, x1)`` on MOG's 8-bit scale (``to_u8``'s
+        numbers, in NumPy: a crop is too little work for a parallel kernel's start-up)."""
+        y0, y1, x0, x1 = box
+        r = np.where(
+            self.isi[y0:y1, x0:x1] < self.span,
+            self.rate[y0:y1, x0:x1],
+            self.frame[y0:y1, x0:x1],
+        )
+        return _u8(r, gain)
+
+
+def _u8(rates: np.ndarray, gain: float) -> np.ndarray:
+    """:func:`cfsr.methods.mog.to_u8` for finite rates >= 0 and a gain > 0, in NumPy."""
+    q = np.rint(rates.astype(np.float32) * np.float32(255.0 / gain))
+    return np.minimum(q, np.float32(255)).astype(np.uint8)
+
+
+def _mog_objects(
+    u8: np.ndarray,
+    phi0: float,
+    adaptive: bool,
+    p: Mapping[str, Any],
+    hist: int,
+    sharp: _Sharp | None = None,
+    gain: float = 1.0,
+):
+    """Eq. 8-9 on the history ``u8`` (oldest first): ``|f - B| >= phi0`` with f the last
+    history frame, or the sharp rate at t (``sharp``, put on the 8-bit scale with ``gain``).
 
     MOG models every pixel on its own, and its background B lies between the pixel's smallest
-    and largest history value, so ``|f_t - B| >= phi0`` is impossible where the history's range
-    is below phi0. The adaptive pipeline runs MOG only on the bounding box of the pixels whose
-    range reaches phi0 (none: no objects, MOG skipped), with the same result.
+    and largest history value, so ``|f - B| >= phi0`` with f in the history is impossible where
+    the history's range is below phi0. A sharp f outside the history could pass there, but
+    such a pixel has not seen a mover in its history (its light changed only within the last
+    few steps) and is left out too: f's noise would otherwise scatter objects, and the
+    pixels MOG must run on, over the frame. The adaptive pipeline runs MOG only on the
+    bounding box of the pixels whose range reaches phi0 (none: no objects, MOG skipped),
+    with the same result.
     """
     h, w = u8.shape[1:]
-    if adaptive:
+    varies = None
+    if adaptive or sharp is not None:
         varies = (u8.max(axis=0).astype(np.int16) - u8.min(axis=0)) >= phi0
+    if adaptive:
         if not varies.any():
             return np.zeros((h, w), bool)
         ys, xs = np.nonzero(varies)
@@ -710,8 +849,114 @@ def _mog_objects(u8: np.ndarray, phi0: float, adaptive: bool, p: Mapping[str, An
         noise_sigma=p["mog_noise"],
     )
     objects = np.zeros((h, w), bool)
-    objects[y0:y1, x0:x1] = mog_objects(crop[-1], background, phi0)
+    if sharp is None:
+        objects[y0:y1, x0:x1] = mog_objects(crop[-1], background, phi0)
+    else:
+        found = mog_objects(sharp.u8((y0, y1, x0, x1), gain), background, phi0)
+        objects[y0:y1, x0:x1] = found & varies[y0:y1, x0:x1]
     return objects
+
+
+@njit(parallel=True, cache=True)
+def _crop_counts(packed, geo, lo, hi, starts, length, y0, x0, xa, xb, out):
+    # pragma: no cover - numba
+    """``out[k, i, x - x0]``: spikes of image pixel ``(y0 + i, x)``, ``xa[i] <= x <
+    xb[i]`` (a row with ``xa[i] >= xb[i]`` is skipped), in steps ``[starts[k], starts[k] +
+    length)`` (all inside ``[lo, hi)``), from the packed frames: those pixels' words
+    (:func:`cfsr._words.row_words`, one transpose per 64 steps x 64 pixels) and masked
+    popcounts (:func:`cfsr._words.count_between`). Other entries are left as they are."""
+    k_count, hh, ww = out.shape
+    nw = (hi - lo + 63) >> 6
+    for i in prange(hh):
+        a_x = xa[i]
+        b_x = xb[i]
+        if a_x >= b_x:
+            continue
+        words = np.empty((b_x - a_x + ROW_PAD, nw), np.uint64)
+        base, step = row_words(packed, geo, lo, hi, y0 + i, a_x, b_x, words)
+        for x in range(a_x, b_x):
+            r = base + step * (x - a_x)
+            for k in range(k_count):
+                a = starts[k]
+                out[k, i, x - x0] = count_between(words, r, lo, a, a + length)
+    return out
+
+
+def _box(mask: np.ndarray, adaptive: bool) -> tuple[int, int, int, int]:
+    """The bounding box ``(y0, y1, x0, x1)`` of a non-empty ``mask`` (adaptive), or the frame."""
+    if not adaptive:
+        return 0, mask.shape[0], 0, mask.shape[1]
+    ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    return int(ys[0]), int(ys[-1]) + 1, int(xs[0]), int(xs[-1]) + 1
+
+
+def _future_objects(
+    src: PackedWindow,
+    center: int,
+    cand: np.ndarray,
+    sharp: _Sharp,
+    gain: float,
+    match: float,
+    adaptive: bool,
+    p: Mapping[str, Any],
+    hist: int,
+) -> np.ndarray:
+    """The candidate objects ``cand`` that are not ghosts by the **mirrored history**.
+
+    The mirrored history: TFP frames (Eq. 4) over ``[t + k * s, t + k * s + mog_window)``, ``s =
+    mog_future_stride``, ``k = mog_future_frames - 1 .. 0``, fed to a fresh MOG farthest first
+    (time reversed, so the last frame is the one at t; frames past the window's end dropped),
+    its background B as :func:`cfsr.methods.mog.mog_background`'s. A ghost -- background that a
+    mover uncovered within the history before t, which that history's B still holds as the
+    mover -- is background for the whole history after t: where the sharp rate at t lies
+    within ``match`` levels (half of phi0 by default) of this B the pixel is a ghost. A pixel
+    the mover covers at t lies near neither background, except by chance on a moving texture,
+    hence the tighter ``match``.
+
+    The frames are counted on the packed bytes of the candidates' bounding box (the whole
+    frame when not ``adaptive``), and MOG, which models every pixel on its own, runs on the
+    candidates alone, gathered into one row: its cost follows their number.
+    """
+    n = src.n
+    win, stride = int(p["mog_window"]), int(p["mog_future_stride"])
+    starts = [
+        center + k * stride
+        for k in range(int(p["mog_future_frames"]) - 1, -1, -1)
+        if center + k * stride + win <= n
+    ]
+    if not starts:  # no frame after t in the window: no ghost can be told
+        return cand.copy()
+    box = _box(cand, adaptive)
+    y0, y1, x0, x1 = box
+    sel = cand[y0:y1, x0:x1]
+    # per row, the columns from its first to its last candidate (none: the row is skipped)
+    rows = sel.any(axis=1)
+    xa = np.where(rows, x0 + sel.argmax(axis=1), x0).astype(np.int64)
+    xb = np.where(rows, x1 - sel[:, ::-1].argmax(axis=1), x0).astype(np.int64)
+    counts = _crop_counts(
+        src.packed,
+        src.geo,
+        min(starts),
+        max(starts) + win,
+        np.asarray(starts, np.int64),
+        win,
+        y0,
+        x0,
+        xa,
+        xb,
+        np.zeros((len(starts), y1 - y0, x1 - x0), np.int32),
+    )
+    frames = _u8(counts[:, sel].astype(np.float32) / np.float32(win), gain)
+    _, background = mog_background(
+        frames[:, None, :],
+        history=hist,
+        nmixtures=p["mog_mixtures"],
+        background_ratio=p["mog_ratio"],
+        noise_sigma=p["mog_noise"],
+    )
+    keep = np.zeros_like(cand)
+    keep[y0:y1, x0:x1][sel] = mog_objects(sharp.u8(box, gain)[sel], background[0], match)
+    return keep
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
