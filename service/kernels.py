@@ -96,7 +96,7 @@ class KernelWarmup:
         self._proc = subprocess.Popen(
             cmd,
             stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
+            stderr=subprocess.STDOUT,  # one pipe, read to its end: no full pipe can block it
             stdin=subprocess.DEVNULL,
             text=True,
             preexec_fn=_child_setup,
@@ -107,6 +107,7 @@ class KernelWarmup:
     def _follow(self) -> None:
         proc = self._proc
         assert proc is not None and proc.stdout is not None
+        last = ""  # the last line that is not a method's progress: the error, if any
         for line in proc.stdout:
             name = line.split(" ", 1)[0].strip()
             with self._lock:
@@ -114,7 +115,8 @@ class KernelWarmup:
                 if name in st.pending:
                     st.pending.remove(name)
                     st.ready.append(name)
-        err = proc.stderr.read() if proc.stderr is not None else ""
+                elif line.strip():
+                    last = line.strip()
         code = proc.wait()
         with self._lock:
             st = self._status
@@ -123,8 +125,7 @@ class KernelWarmup:
                 st.state = "done"
             elif st.state == "compiling":
                 st.state = "failed"
-                last = [ln for ln in err.strip().splitlines() if ln.strip()][-1:]
-                st.error = f"exit status {code}" + (f": {last[0]}" if last else "")
+                st.error = f"exit status {code}" + (f": {last}" if last else "")
 
     def status(self) -> KernelStatus:
         with self._lock:

@@ -791,21 +791,14 @@ class _Sharp(NamedTuple):
     span: int
 
     def u8(self, box: tuple[int, int, int, int], gain: float) -> np.ndarray:
-        """f on the crop ``box = (y0, y1, x0, x1)`` on MOG's 8-bit scale (``to_u8``'s
-        numbers, in NumPy: a crop is too little work for a parallel kernel's start-up)."""
+        """f on the crop ``box = (y0, y1, x0, x1)`` on MOG's 8-bit scale (:func:`to_u8`)."""
         y0, y1, x0, x1 = box
         r = np.where(
             self.isi[y0:y1, x0:x1] < self.span,
             self.rate[y0:y1, x0:x1],
             self.frame[y0:y1, x0:x1],
         )
-        return _u8(r, gain)
-
-
-def _u8(rates: np.ndarray, gain: float) -> np.ndarray:
-    """:func:`cfsr.methods.mog.to_u8` for finite rates >= 0 and a gain > 0, in NumPy."""
-    q = np.rint(rates.astype(np.float32) * np.float32(255.0 / gain))
-    return np.minimum(q, np.float32(255)).astype(np.uint8)
+        return to_u8(r, gain)
 
 
 def _mog_objects(
@@ -946,7 +939,7 @@ def _future_objects(
         xb,
         np.zeros((len(starts), y1 - y0, x1 - x0), np.int32),
     )
-    frames = _u8(counts[:, sel].astype(np.float32) / np.float32(win), gain)
+    frames = to_u8(counts[:, sel].astype(np.float32) / np.float32(win), gain)
     _, background = mog_background(
         frames[:, None, :],
         history=hist,
