@@ -116,8 +116,17 @@ def test_parameters_in_range_can_still_ask_for_too_long_a_window():
     past the ring."""
     with pytest.raises(ValueError, match=r"at most 40000 steps.*mog_frames=200, mog_stride=300"):
         resolve_params(get_method("cfsr"), {"mog_frames": 200, "mog_stride": 300})
+    # one-sided objects read 248 steps after t (PatchMatch's reach); two-sided ones (the
+    # default) also read the mirrored history: (frames - 1) * stride + mog_window - 1 after t
     with pytest.raises(ValueError, match=r"40298 steps before t and 248 after"):
-        resolve_params(get_method("cfsr"), {"mog_frames": 4, "mog_stride": 13_333})
+        resolve_params(get_method("cfsr"),
+                       {"mog_frames": 4, "mog_stride": 13_333, "mog_sides": "past"})
+    with pytest.raises(ValueError, match=r"40298 steps before t and 383 after"):  # 5*64 + 63
+        resolve_params(get_method("cfsr"), {"mog_frames": 4, "mog_stride": 13_333,
+                                            "mog_future_frames": 6, "mog_future_stride": 64})
+    with pytest.raises(ValueError, match=r"40298 steps before t and 463 after"):  # 2*200 + 63
+        resolve_params(get_method("cfsr"), {"mog_frames": 4, "mog_stride": 13_333,
+                                            "mog_future_frames": 3, "mog_future_stride": 200})
     # elsewhere any one window-like value at its maximum fits (CFSR adds several reaches up:
     # PatchMatch's pm_step * pm_count beyond max_isi, the MOG history before T)
     for name in ("tfp", "tfi", "csr", "tfa", "tfstp", "snm"):

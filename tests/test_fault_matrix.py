@@ -13,6 +13,7 @@ import os
 import shutil
 import signal
 import socket
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -209,7 +210,17 @@ def test_worker_memory_returns_after_a_large_window_is_reverted(ctx):
         s.wait_for(lambda x: x["worker"]["applied_version"] == x["worker"]["config_version"]
                    and x["params"].get("window") == window, timeout=120,
                    what=f"window={window} to be applied")
-        ws_frames(s, 3, timeout=120, method="tfp")
+        # The worker answers at once with a window clipped at the ring's start and fills the
+        # ring as the stream comes; read the RSS only once a whole window of steps has come
+        # after the change (a TFP frame over 30000 steps can hold the worker still for longer
+        # than the steadiness test's 0.25 s, which once read a half-filled ring).
+        last = ws_frames(s, 1, timeout=120, method="tfp")[0]["step"]
+        came, end = 0, time.monotonic() + 120
+        while came < window + 1:
+            assert time.monotonic() < end, f"only {came} steps came after window={window}"
+            step = ws_frames(s, 1, timeout=120, method="tfp")[0]["step"]
+            came += max(0, step - last)
+            last = step
         return _steady_rss_mb(s.status()["worker"]["pid"])
 
     base = settle(160)
