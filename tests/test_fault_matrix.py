@@ -13,7 +13,6 @@ import os
 import shutil
 import signal
 import socket
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -190,57 +189,57 @@ def test_fault(ctx, name, row):
         raise AssertionError(f"/api/status failed after {name}: {exc}") from exc
 
 
-def _rss_mb(pid: int) -> float:
+def _mem_mb(pid: int, key: str) -> float:
+    """``VmRSS`` (resident) or ``VmSize`` (mapped) of ``pid`` in MB."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
+        if line.startswith(key + ":"):
             return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
+    raise AssertionError(f"no {key}")
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux /proc")
 def test_worker_memory_returns_after_a_large_window_is_reverted(ctx):
     """A large-but-valid window grows the worker's buffer; reverting it gives the memory back
-    (it used to stay at its peak: 362 MB -> 2.8 GB for good after window=100000)."""
+    (it used to stay at its peak: 362 MB -> 2.8 GB for good after window=100000).
+
+    The buffer's size shows in the mapped size (VmSize) as soon as the window is applied; the
+    resident size (VmRSS) grows only with the frames written into it, which on a loaded host
+    is less than the window: a worker that falls behind skips data and restarts its ring (CI
+    read 567 MB resident over a 369 MB base after 30000 steps of frames had come)."""
     s = ctx.s
 
-    def settle(window: int) -> float:
-        """Apply ``window``, see frames made with it, and return the worker's steady RSS."""
+    def settle(window: int) -> tuple[float, float]:
+        """Apply ``window``, see frames made with it, and return the worker's steady
+        (VmSize, VmRSS)."""
         r = s.put("/api/config", json={"method": "tfp", "params": {"window": window}})
         assert r.status_code in (200, 202), r.text
         s.wait_for(lambda x: x["worker"]["applied_version"] == x["worker"]["config_version"]
                    and x["params"].get("window") == window, timeout=120,
                    what=f"window={window} to be applied")
-        # The worker answers at once with a window clipped at the ring's start and fills the
-        # ring as the stream comes; read the RSS only once a whole window of steps has come
-        # after the change (a TFP frame over 30000 steps can hold the worker still for longer
-        # than the steadiness test's 0.25 s, which once read a half-filled ring).
-        last = ws_frames(s, 1, timeout=120, method="tfp")[0]["step"]
-        came, end = 0, time.monotonic() + 120
-        while came < window + 1:
-            assert time.monotonic() < end, f"only {came} steps came after window={window}"
-            step = ws_frames(s, 1, timeout=120, method="tfp")[0]["step"]
-            came += max(0, step - last)
-            last = step
-        return _steady_rss_mb(s.status()["worker"]["pid"])
+        ws_frames(s, 3, timeout=120, method="tfp")
+        pid = s.status()["worker"]["pid"]
+        return _steady_mb(pid, "VmSize"), _steady_mb(pid, "VmRSS")
 
-    base = settle(160)
-    big = settle(30_000)  # 0.75 s of steps: a buffer of about 750 MB at 400 x 250
-    back = settle(160)
-    print(f"worker RSS: {base:.0f} MB, window=30000 {big:.0f} MB, reverted {back:.0f} MB")
-    assert big > base + 300, (base, big)  # the window really took memory
-    assert back < base + 100, (base, big, back)  # and gave it back
+    base, base_rss = settle(160)
+    big, _ = settle(30_000)  # 0.75 s of steps: a mirrored ring of 2 x 31025 x 12500 B = 740 MiB
+    back, back_rss = settle(160)
+    print(f"worker VmSize: {base:.0f} MB, window=30000 {big:.0f} MB, reverted {back:.0f} MB; "
+          f"VmRSS {base_rss:.0f} -> {back_rss:.0f} MB")
+    assert big > base + 600, (base, big)  # the window's buffer was mapped
+    assert back < big - 600, (base, big, back)  # and unmapped when the window was reverted
+    assert back_rss < base_rss + 100, (base_rss, back_rss)  # nothing of it stays resident
 
 
-def _steady_rss_mb(pid: int, timeout: float = 30.0) -> float:
-    """The RSS of ``pid`` once it stopped moving (two reads 0.25 s apart within 2 %): a
-    buffer is allocated or given back a moment after the frames that show a new window."""
+def _steady_mb(pid: int, key: str, timeout: float = 30.0) -> float:
+    """``key`` of :func:`_mem_mb` once it stopped moving (two reads 0.25 s apart within 2 %):
+    a buffer is allocated or given back a moment after the frames that show a new window."""
     last: list[float] = []
 
     def steady() -> float | None:
-        now = _rss_mb(pid)
+        now = _mem_mb(pid, key)
         prev = last[-1] if last else None
         last.append(now)
         return now if prev is not None and abs(now - prev) <= 0.02 * prev else None
 
-    return wait_until(steady, timeout, lambda: f"a steady RSS of {pid} (reads: {last[-8:]})",
+    return wait_until(steady, timeout, lambda: f"a steady {key} of {pid} (reads: {last[-8:]})",
                       interval=0.25)
