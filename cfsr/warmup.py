@@ -27,16 +27,45 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["warm_up", "is_warm", "marker_path", "WARM_ORDER"]
+__all__ = ["warm_up", "is_warm", "marker_path", "cache_dir", "WARM_ORDER"]
 
 #: Methods in the order a warm-up compiles them: the costliest compilations that users reach
 #: for first (CSR, CFSR), then the rest.
 WARM_ORDER = ("tfi", "tfp", "csr", "cfsr", "tfa", "tfstp", "snm")
 
-#: The scene the kernels compile on: small (the compile does not depend on the frame size), but
-#: moving, so that no stage is skipped (a static window would take CFSR's static gate and leave
-#: its history scan and PatchMatch uncompiled).
-_SCENE = ("disk", 96, 128)
+#: Rows and columns of the scene the kernels compile on: small (the compile does not depend on
+#: the frame size).
+_SHAPE = (96, 128)
+
+
+def _moving_spikes(n: int, h: int, w: int, vanish: int) -> np.ndarray:
+    """``(n, h, w)`` uint8 spikes, integrate-and-fire with threshold 1, of a still texture
+    (0.05-0.3 spikes/step) with a textured band sliding over it (0.5 px per step, 0.01-0.9
+    spikes/step) and a bright block (0.8) that leaves at step ``vanish``.
+
+    Every stage of CFSR runs on it, so every kernel compiles: the band is motion (a static
+    window would take CFSR's static gate and leave its history scan and PatchMatch uncompiled;
+    its dark pixels reach the distinct-interval test's theta, so the coarse mask and the
+    dynamic stages run), the place the block left is a *ghost* (still by t, in MOG's history
+    before t: the two-sided objects' future test runs). Made with NumPy rather than the
+    simulator, whose own kernels would compile first (15-30 s of a warm-up on 2 cores).
+    """
+    rng = np.random.default_rng(0)
+    still = rng.uniform(0.05, 0.3, (h, w)).astype(np.float32)
+    band = rng.uniform(0.01, 0.9, (h // 3, 2 * w)).astype(np.float32)
+    acc = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
+    out = np.empty((n, h, w), np.uint8)
+    rate = still.copy()
+    block = (slice(h // 3 + h // 3 + 4, h - 4), slice(w // 4, w // 2))
+    for t in range(n):
+        x = (t // 2) % w
+        rate[h // 3 : h // 3 + band.shape[0]] = band[:, x : x + w]
+        rate[block] = 0.8 if t < vanish else still[block]
+        acc += rate
+        fired = acc >= 1.0
+        acc[fired] -= 1.0
+        out[t] = fired
+    return out
 
 
 def _fingerprint() -> str:
@@ -54,15 +83,28 @@ def _fingerprint() -> str:
     return h.hexdigest()[:16]
 
 
-def marker_path() -> Path | None:
-    """Where a finished warm-up of this code leaves its marker: numba's cache folder when
-    ``NUMBA_CACHE_DIR`` is set, else cfsr's own ``__pycache__`` (where numba caches its
-    kernels); None where that folder cannot be written (then no marker is kept)."""
+def cache_dir() -> Path:
+    """The folder numba caches cfsr's kernels in: ``NUMBA_CACHE_DIR`` when set, else the one
+    numba's own locator picks (cfsr's ``__pycache__`` where it can be written, as in a user's
+    virtual environment; else numba's per-user cache folder, as for a system-wide install)."""
     import numba
 
     import cfsr
 
-    base = Path(numba.config.CACHE_DIR or Path(cfsr.__file__).parent / "__pycache__")
+    if numba.config.CACHE_DIR:
+        return Path(numba.config.CACHE_DIR)
+    from cfsr._bits import _unpack_kernel
+
+    try:  # numba exposes no public accessor for a dispatcher's cache folder
+        return Path(_unpack_kernel._cache._cache_path)
+    except AttributeError:  # pragma: no cover - another numba's internals
+        return Path(cfsr.__file__).parent / "__pycache__"
+
+
+def marker_path() -> Path | None:
+    """Where a finished warm-up of this code leaves its marker: the folder numba caches the
+    kernels in (:func:`cache_dir`); None where it cannot be written (then no marker is kept)."""
+    base = cache_dir()
     try:
         base.mkdir(parents=True, exist_ok=True)
     except OSError:
@@ -103,23 +145,20 @@ def warm_up(
     from cfsr.layout import Layout
     from cfsr.methods import get_method, resolve_params
     from cfsr.methods import methods as registered
-    from cfsr.simulate import simulate
     from cfsr.streaming import StreamingReconstructor
 
     known = list(registered())
     names = [m for m in WARM_ORDER if m in known] + [m for m in known if m not in WARM_ORDER]
     if methods is not None:
         names = [get_method(m).name for m in methods]
-    need = 1
-    for name in names:
-        m = get_method(name)
-        need = max(need, sum(m.window(resolve_params(m))) + 1)
-    scene, h, w = _SCENE
-    packed = pack_frames(simulate(scene, need, seed=0, height=h, width=w).spikes)
+    h, w = _SHAPE
     layout = Layout(w, h)
     out: dict[str, float] = {}
     for name in names:
         t0 = time.perf_counter()
+        before, after = get_method(name).window(resolve_params(get_method(name)))
+        need = before + after + 1  # the frame computed is the one at `before`
+        packed = pack_frames(_moving_spikes(need, h, w, vanish=max(0, before - 100)))
         sr = StreamingReconstructor(name, layout, slack=need)
         sr.push(packed, 0)
         out_t = sr.latest_step()

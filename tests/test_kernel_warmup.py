@@ -148,3 +148,34 @@ def test_first_serve_compiles_in_the_background_and_stops_it_with_the_server(tmp
     finally:
         srv.stop()
     wait_until(lambda: not os.path.exists(f"/proc/{pid}"), 10, "the warm-up process to end")
+
+
+def test_if_needed_does_nothing_once_this_code_was_warmed(tmp_path):
+    """``cfsr warmup --if-needed`` (what ``./tasks`` runs before serving) returns at once when a
+    complete warm-up of this code left its marker in numba's cache folder."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path)}
+    (tmp_path / f"cfsr-warm-{warmup._fingerprint()}").write_text("tfi=0.1\n")
+    t0 = time.monotonic()
+    r = _cli("--if-needed", "--lines", env=env)
+    assert r.returncode == 0 and r.stdout == "", (r.stdout, r.stderr)
+    assert time.monotonic() - t0 < 60  # nothing compiled (a real warm-up takes minutes)
+    assert not any(p.suffix == ".nbi" for p in tmp_path.rglob("*"))
+    # named methods are an explicit request: they run whatever the marker says
+    r = _cli("--if-needed", "--lines", "--methods", "tfi", env=env)
+    assert r.returncode == 0 and r.stdout.split()[0] == "tfi", r.stderr
+
+
+def test_cache_dir_is_where_numba_writes_the_kernels(tmp_path):
+    """Without ``NUMBA_CACHE_DIR`` the marker goes where numba's own locator caches cfsr's
+    kernels (the package's ``__pycache__`` in a writable install), so a warm-up is seen again."""
+    code = "from cfsr.warmup import cache_dir; print(cache_dir())"
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, timeout=120, check=True).stdout.strip()
+    pkg = os.path.dirname(cfsr.__file__)
+    if os.access(pkg, os.W_OK):
+        assert out == os.path.join(pkg, "__pycache__")
+    env["NUMBA_CACHE_DIR"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, timeout=120, check=True).stdout.strip()
+    assert out == str(tmp_path)

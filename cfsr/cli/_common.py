@@ -109,10 +109,10 @@ def open_input(args: argparse.Namespace):
 
 
 def jit_cache_location() -> str:
-    """Where numba keeps the compiled kernels (``NUMBA_CACHE_DIR``, else beside the modules)."""
-    import numba
+    """Where numba keeps the compiled kernels (:func:`cfsr.warmup.cache_dir`)."""
+    from cfsr.warmup import cache_dir
 
-    return numba.config.CACHE_DIR or "__pycache__ folders beside the installed cfsr modules"
+    return str(cache_dir())
 
 
 @contextmanager

@@ -24,6 +24,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="one line per method on stdout ('NAME SECONDS'), for programs that follow it",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--if-needed",
+        action="store_true",
+        help="do nothing when a warm-up of this code already finished here (how './tasks' "
+        "compiles at install time)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -32,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from cfsr.cli._common import jit_cache_location
     from cfsr.methods import get_method
     from cfsr.methods import methods as registered
-    from cfsr.warmup import warm_up
+    from cfsr.warmup import is_warm, warm_up
 
     names = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
     try:  # names checked before any work, so a typo is one line
@@ -40,6 +46,8 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"cfsr warmup: error: {exc}", file=sys.stderr)
         return 2
+    if args.if_needed and names is None and is_warm():
+        return 0
     total = len(names) if names else len(registered())
     bar = tqdm(total=total, unit="method", disable=args.quiet or args.lines, file=sys.stderr)
 
