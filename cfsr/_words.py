@@ -16,6 +16,8 @@ The kernels here are building blocks (``inline="always"``) for the per-pixel sca
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
@@ -28,6 +30,8 @@ from cfsr.layout import Layout
 
 __all__ = [
     "PackedWindow",
+    "Words",
+    "Stored",
     "geometry",
     "leading_zeros",
     "popcount",
@@ -207,6 +211,25 @@ def row_words(packed, geo, lo, hi, y, x0, x1, words):  # pragma: no cover - numb
             for j in range(min(64, 8 * (nbytes - g))):
                 words[8 * g + j, q] = a[j]
     return qa - 8 * b0, xs
+
+
+class Words(NamedTuple):
+    """The packed window and the steps ``[lo, hi)`` whose spike words a scan reads (a
+    kernel argument group)."""
+
+    packed: np.ndarray  #: uint8 (n, frame bytes)
+    geo: np.ndarray  #: int64 (5,): :func:`geometry`
+    lo: int
+    hi: int
+
+
+class Stored(NamedTuple):
+    """Spike words a whole-frame scan kept for a later one: pixel ``x`` of row ``y`` at
+    ``store[y, bases[y, 0] + bases[y, 1] * x]`` (:func:`row_or_stored`); empty arrays make
+    the later scan gather them itself."""
+
+    store: np.ndarray  #: uint64 (H, W + ROW_PAD, words) or (0, 0, 0)
+    bases: np.ndarray  #: int64 (H, 2) or (0, 2)
 
 
 @njit(cache=True, inline="always")

@@ -63,6 +63,8 @@ from cfsr._isi import search_range
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
+    Stored,
+    Words,
     count_between,
     count_range,
     isi_in_words,
@@ -357,15 +359,6 @@ def _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no c
     return daisi_from_times(loc[:nl], a_lo, a_hi, logs)
 
 
-class _Words(NamedTuple):
-    """The packed window and the steps ``[lo, hi)`` whose spike words a scan reads."""
-
-    packed: np.ndarray  #: uint8 (n, frame bytes)
-    geo: np.ndarray  #: int64 (5,): :func:`cfsr._words.geometry`
-    lo: int
-    hi: int
-
-
 class _Union(NamedTuple):
     """The union ``[u_lo, u_hi)`` of the K distinction windows, their length ``span`` (T)
     and ``theta`` (Eq. 5-6)."""
@@ -399,15 +392,6 @@ class _Windows(NamedTuple):
     m: int
 
 
-class _Stored(NamedTuple):
-    """The first pass's spike words, kept for the second: pixel ``x`` of row ``y`` at
-    ``store[y, bases[y, 0] + bases[y, 1] * x]`` (:func:`cfsr._words.row_or_stored`); empty
-    arrays make the second pass gather them itself."""
-
-    store: np.ndarray  #: uint64 (H, W + ROW_PAD, words) or (0, 0, 0)
-    bases: np.ndarray  #: int64 (H, 2) or (0, 2)
-
-
 # a theta no distinct-ISI count reaches (T <= MAX_WINDOW_STEPS): the second pass then walks
 # no coarse window and gives the TFI intervals alone (:func:`_tfi_at`)
 _NO_COARSE = 1 << 30
@@ -428,15 +412,16 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
     # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
 
-    Per pixel, on the words of ``src`` (:class:`_Words`): ``ub``, the distinct ISIs of the union
-    ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at ``theta``): every window's
-    ISI set is a subset, so ``ub < theta`` proves the pixel static in all K coarse masks;
+    Per pixel, on the words of ``src`` (:class:`~cfsr._words.Words`): ``ub``, the distinct
+    ISIs of the union ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at
+    ``theta``): every window's ISI set is a subset, so ``ub < theta`` proves the pixel static
+    in all K coarse masks;
     the TFP rates ``tfp[j]`` (Eq. 4: spikes in ``[bounds[ia[j]], bounds[ib[j]])`` over the
     window's length; the windows of the history frames and of t share edges, so each distinct
     edge is counted once), or where ``isi_est[j]`` the ``isi`` static rate over the same spans
     (:func:`cfsr.methods.tfp.span_rate`, first and last spike by two bit scans; the TFI at
     ``cents[j]``, ``m`` steps each side, below two spikes); DAISI at t. The words stay in
-    ``kept`` (:class:`_Stored`) for the second pass.
+    ``kept`` (:class:`~cfsr._words.Stored`) for the second pass.
     """
     packed, geo, lo, hi = src
     u_lo, u_hi, span, theta = union
@@ -491,9 +476,9 @@ def _dynamic_kernel(src, wins, kept, ub, counts, isi):  # pragma: no cover - num
     where ``ub >= theta``, each history window's distinct-ISI count (Eq. 5) by a walk that
     stops at ``theta`` (only ``count >= theta``, the coarse mask, is used: a moving pixel
     reaches it within a few words); elsewhere ``counts`` is ``ub``, below ``theta`` like
-    every window's own count. ``src`` (:class:`_Words`) gives the steps, ``wins``
+    every window's own count. ``src`` (:class:`~cfsr._words.Words`) gives the steps, ``wins``
     (:class:`_Windows`) the windows. Reads the first pass's words (``kept``,
-    :class:`_Stored`) when it holds one row per image row; otherwise gathers them."""
+    :class:`~cfsr._words.Stored`) when it holds one row per image row; otherwise gathers them."""
     packed, geo, lo, hi = src
     ends, span, theta, m = wins
     store, bases = kept
@@ -578,7 +563,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     store = _scratch((h, w + ROW_PAD, n_words(lo, hi)))
     bases = np.empty((h, 2), np.int64)
     _static_kernel(
-        _Words(src.packed, src.geo, lo, hi),
+        Words(src.packed, src.geo, lo, hi),
         _Union(u_lo, u_hi, span, theta),
         _Spans(
             bounds.astype(np.int64),
@@ -592,7 +577,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
         ub,
         tfps,
         daisi,
-        _Stored(store, bases),
+        Stored(store, bases),
     )
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
@@ -607,9 +592,9 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     counts = np.empty((k, h, w), np.int32)
     isi = np.empty((k, h, w), np.int32)
     _dynamic_kernel(
-        _Words(src.packed, src.geo, lo, hi),
+        Words(src.packed, src.geo, lo, hi),
         _Windows(ends, span, theta, m),
-        _Stored(store, bases),
+        Stored(store, bases),
         ub,
         counts,
         isi,
@@ -634,9 +619,9 @@ def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
     a, b = search_range(center, m, n)
     isi = np.empty((1, src.h, src.w), np.int32)
     _dynamic_kernel(
-        _Words(src.packed, src.geo, a, b),
+        Words(src.packed, src.geo, a, b),
         _Windows(np.array([center], np.int64), 1, _NO_COARSE, m),
-        _Stored(np.empty((0, 0, 0), np.uint64), np.empty((0, 2), np.int64)),  # gather words
+        Stored(np.empty((0, 0, 0), np.uint64), np.empty((0, 2), np.int64)),  # gather words
         np.zeros((src.h, src.w), np.int32),
         np.empty_like(isi),
         isi,

@@ -31,12 +31,16 @@ Without temporal noise the median spread is 0 and the fixed tolerances apply.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
 from cfsr._isi import needs_after, needs_before, tfi_interval
 from cfsr._words import (
     PackedWindow,
+    Stored,
+    Words,
     count_between,
     next_spike,
     prev_spike,
@@ -117,18 +121,30 @@ def interval_stats(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - nu
     return (vmax - vmin - 1) / (tot / k), isi_c
 
 
+class _Around(NamedTuple):
+    """Where the steadiness is read: ``c`` in a window of ``n`` steps, the intervals within
+    ``radius`` steps of it, the TFI's search ``m`` steps each side (Eq. 3)."""
+
+    n: int
+    c: int
+    radius: int
+    m: int
+
+
 @njit(parallel=True, cache=True)
-def _steady_kernel(
-    packed, geo, lo, hi, n, c, radius, m, spans, spread, isi, rates, store, bases
-):  # pragma: no cover - numba
+def _steady_kernel(src, kept, at, spans, spread, isi, rates):  # pragma: no cover - numba
     # the spread searches the TFI's range whatever range the words cover, so its open-ended
     # intervals do not depend on who gathered the words
-    """Per pixel from its words of ``[lo, hi)``: :func:`interval_stats` around ``c``, the TFI
-    interval at ``c`` (``m`` steps each side) and, for each span ``[spans[j, 0], spans[j, 1])``,
-    the ``isi`` span rate (:func:`cfsr.methods.tfp.span_rate`; the TFI at ``c`` below two
-    spikes: :func:`cfsr.methods.tfp.static_rate`'s rule). Reads ``store[y]`` (pixel ``x`` at
-    ``bases[y, 0] + bases[y, 1] * x``, steps from ``lo``) when it holds one row per image row,
-    as CFSR's history scan leaves it; otherwise gathers the words."""
+    """Per pixel from its words of ``[src.lo, src.hi)`` (:class:`~cfsr._words.Words`):
+    :func:`interval_stats` around ``at.c`` (:class:`_Around`), the TFI interval at it and, for
+    each span ``[spans[j, 0], spans[j, 1])``, the ``isi`` span rate
+    (:func:`cfsr.methods.tfp.span_rate`; the TFI at ``c`` below two spikes:
+    :func:`cfsr.methods.tfp.static_rate`'s rule). Reads the words ``kept``
+    (:class:`~cfsr._words.Stored`) when they hold one row per image row, as CFSR's history scan
+    leaves them; otherwise gathers them."""
+    packed, geo, lo, hi = src
+    store, bases = kept
+    n, c, radius, m = at
     h, w = spread.shape
     a = max(0, c - m)
     b = min(n, c + m + 1)
@@ -220,8 +236,8 @@ def steadiness(
     isi = np.empty((src.h, src.w), np.int32)
     rates = np.empty((sp.shape[0], src.h, src.w), np.float32)
     _steady_kernel(
-        src.packed, src.geo, int(lo), int(hi), n, c, radius, m, sp, spread, isi, rates,
-        store, bases,
+        Words(src.packed, src.geo, int(lo), int(hi)), Stored(store, bases),
+        _Around(n, c, radius, m), sp, spread, isi, rates,
     )
     return spread, isi, rates
 
