@@ -30,6 +30,7 @@ STAGES = (
     "_mog_objects",
     "_future_objects",
     "fine_mask",
+    "still_pixels",
     "pm_frames",
     "patchmatch_fuse",
 )

@@ -116,9 +116,13 @@ def test_parameters_in_range_can_still_ask_for_too_long_a_window():
     past the ring."""
     with pytest.raises(ValueError, match=r"at most 40000 steps.*mog_frames=200, mog_stride=300"):
         resolve_params(get_method("cfsr"), {"mog_frames": 200, "mog_stride": 300})
-    # one-sided objects read 248 steps after t (PatchMatch's reach); two-sided ones (the
-    # default) also read the mirrored history: (frames - 1) * stride + mog_window - 1 after t
+    # one-sided objects read 248 steps after t (PatchMatch's reach), the still pixels
+    # still_reach (380); two-sided ones (the default) also read the mirrored history:
+    # (frames - 1) * stride + mog_window - 1 after t
     with pytest.raises(ValueError, match=r"40298 steps before t and 248 after"):
+        resolve_params(get_method("cfsr"), {"mog_frames": 4, "mog_stride": 13_333,
+                                            "mog_sides": "past", "still_reach": 0})
+    with pytest.raises(ValueError, match=r"40298 steps before t and 380 after"):
         resolve_params(get_method("cfsr"),
                        {"mog_frames": 4, "mog_stride": 13_333, "mog_sides": "past"})
     with pytest.raises(ValueError, match=r"40298 steps before t and 383 after"):  # 5*64 + 63

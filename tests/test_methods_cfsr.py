@@ -401,9 +401,13 @@ def test_two_sided_objects_drop_the_ghost_behind_a_mover():
         truth[s, 8:24, x : x + 24] = True
     spikes = if_spikes(frames, n)
     fine = {}
-    for sides in ("past", "both"):
-        _, m = cfsr.reconstruct(spikes, "cfsr", [t], return_masks=True, mog_sides=sides)
+    for sides in ("past", "both"):  # the objects alone: no still pixels (they drop it too)
+        _, m = cfsr.reconstruct(
+            spikes, "cfsr", [t], return_masks=True, mog_sides=sides, still_reach=0
+        )
         fine[sides] = m["fine"][0]
+    _, m = cfsr.reconstruct(spikes, "cfsr", [t], return_masks=True, mog_sides="past")
+    fine["past, still"] = m["fine"][0]
     tr = truth[t]
     iou = {k: (f & tr).sum() / (f | tr).sum() for k, f in fine.items()}
     assert iou["both"] > iou["past"] + 0.05, iou
@@ -413,6 +417,10 @@ def test_two_sided_objects_drop_the_ghost_behind_a_mover():
     trail[8:24, x - 14 : x - 3] = True  # left 3-14 px (60-280 steps) before t: beyond dilate
     assert fine["past"][trail].mean() > 0.5
     assert fine["both"][trail].mean() < 0.2
+    # the trail is background that holds one exact rate from the block's passing to the end
+    # of the window: still pixels, out of the fine mask whatever Eq. 9 says
+    assert fine["past, still"][trail].mean() < 0.2
+    assert (fine["past, still"] & tr).sum() >= 0.95 * tr.sum()
 
 
 def test_paper_presets_keep_eq9_on_the_past():

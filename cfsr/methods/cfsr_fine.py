@@ -23,7 +23,13 @@ the calibration of every default are in docs/methods.md):
    ``daisi_span`` steps of t mark the edges of moving objects.
 4. **Fine mask**: the union of the coarse mask, the MOG objects and the DAISI edges, closed with
    a ``close_size`` square, holes filled, components under ``min_area`` pixels dropped, grown
-   by ``dilate`` pixels. This is the ``fine`` output ("the edges refine the object mask").
+   by ``dilate`` pixels ("the edges refine the object mask"). Then the **still pixels** among
+   it (:mod:`cfsr.methods.still`, ``still_reach`` > 0): pixels whose spikes hold one exact
+   rate around t and either kept it to an end of ``t +- still_reach`` or come back to it
+   after a change. They leave the mask (before and after the closing; holes a mover encloses
+   are filled again) and the dilation does not grow into them; this is the ``fine`` output.
+   PatchMatch still works on the mask before this step, and the still pixels left out take
+   their run's rate.
 5. **Fine reconstruction** (:mod:`cfsr.methods.patchmatch`): TFI at t and at ``t +- pm_step*i``,
    ``i = 1..pm_count`` (clipped to the window), computed only on the 16 x 16 tiles within the
    search margin of a fine-mask pixel; PatchMatch on a guide (TFA over ``pm_guide``
@@ -96,6 +102,7 @@ from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 from cfsr.methods.staticgate import span_counts, span_isi_rate, static_gate
 from cfsr.methods.steady import steady_range
+from cfsr.methods.still import still_pixels
 from cfsr.methods.tfp import STATIC_ESTIMATORS, span_rate, tfp_span
 
 __all__ = ["fine_mask", "fine_stage", "cfsr_window"]
@@ -183,6 +190,33 @@ FINE_PARAMS: dict[str, Param] = {
         minimum=0,
         maximum=1.0,
     ),
+    # a pixel whose spikes keep one exact rate around t, and which either kept it to an end
+    # of the searched range or comes back to it after a change, is background at t: the fine
+    # mask leaves it out and does not grow into it (docs/methods.md, "Still pixels")
+    "still_reach": Param(
+        380,
+        "steps",
+        "steps searched each side of t for the still-pixel proof (0: no proof, the paper's "
+        "fine mask)",
+        minimum=0,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "still_run": Param(
+        64,
+        "steps",
+        "still pixels: shortest stretch of exact constant rate, at t and where the rate "
+        "returns",
+        minimum=2,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
+    "still_jump": Param(
+        0.2,
+        "",
+        "still pixels: an interval at least max(2 steps, still_jump * period) off the run's "
+        "period is the change the rate must return across",
+        minimum=0,
+        maximum=10.0,
+    ),
     "phi0": Param(
         20.0,
         "8-bit levels",
@@ -262,6 +296,7 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
         **CSR_PRESETS["paper"],
         "mog_estimator": "tfp",
         "mog_sides": "past",
+        "still_reach": 0,
         "phi0": 50.0,
         "phi": 4.0,
         "daisi_span": 0,
@@ -270,7 +305,12 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
         "pm_guide": 0,
         "pm_sigma": 0.0,
     },
-    "simulated": {**CSR_PRESETS["simulated"], "mog_estimator": "tfp", "mog_sides": "past"},
+    "simulated": {
+        **CSR_PRESETS["simulated"],
+        "mog_estimator": "tfp",
+        "mog_sides": "past",
+        "still_reach": 0,
+    },
 }
 
 
@@ -287,6 +327,9 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
     if two_sided(p):  # the mirrored history after t and the sharp rate at t
         before = max(before, sharp_span(p)[0])
         after = max(after, future_reach(p), sharp_span(p)[1])
+    if p.get("still_reach", 0) > 0:  # the still-pixel proof's range
+        before = max(before, int(p["still_reach"]))
+        after = max(after, int(p["still_reach"]))
     if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
         _, tfp_end = tfp_span(0, 1 << 62, static_length(p), p["tfp_mode"])  # steps after 0, +1
         before = max(before, 2 * p["static_window"] - tfp_end)
@@ -713,7 +756,36 @@ def fine_stage(
         min_area=p["min_area"],
         dilate=p["dilate"],
     )
+    region = fine  # what PatchMatch reconstructs
+    left = None  # still pixels the reported fine mask leaves out: their run's rate
+    if int(p.get("still_reach", 0)) > 0 and fine.any():
+        # the still pixels among the mask's: background at t, proven by their own spikes
+        still, still_rate = still_pixels(
+            src,
+            center,
+            fine,
+            reach=int(p["still_reach"]),
+            min_run=int(p["still_run"]),
+            jump=float(p["still_jump"]),
+            words=hs["words"],
+        )
+        if still.any():
+            fine = fine_mask(
+                coarse,
+                objects,
+                edges,
+                close_size=p["close_size"],
+                min_area=p["min_area"],
+                dilate=p["dilate"],
+                still=still,
+            )
+            # the still pixels it leaves out take their run's rate (exact over 64-760
+            # steps); PatchMatch keeps its region (what it matches there is unchanged:
+            # a region without them cost the fan's moving pixels 3.7 % more squared error)
+            left = still & ~fine
+            tfp = np.where(left, still_rate, tfp)
     masks = {"coarse": coarse, "fine": fine}
+    fine = region
     if ghosts is not None:
         # the ghosts are background and leave the fine mask, but stay in the region
         # PatchMatch reconstructs (at zero motion it averages 33 TFI frames there): left to
@@ -760,7 +832,7 @@ def fine_stage(
     crop = dyn[y0:y1, x0:x1]
     crop[domain] = refined[domain]
     # 6. ATSR (Eq. 7)
-    rate, _ = atsr_fuse(dyn, tfp, fine, tfi=tfi_full)
+    rate, _ = atsr_fuse(dyn, tfp, fine if left is None else fine & ~left, tfi=tfi_full)
     return rate, masks
 
 

@@ -46,11 +46,28 @@ def fine_mask(
     close_size: int = 9,
     min_area: int = 16,
     dilate: int = 0,
+    still: np.ndarray | None = None,
 ) -> np.ndarray:
     """Fine dynamic mask: the union of the cues (coarse mask, MOG objects, DAISI edges),
-    :func:`regularise`\\ d ("the edges refine the object mask")."""
+    :func:`regularise`\\ d ("the edges refine the object mask").
+
+    ``still`` (bool ``(H, W)``, optional): pixels proven static at t
+    (:mod:`cfsr.methods.still`). They leave the union before the closing and again after it
+    (the closing bridges them back; the second hole filling returns those a mover encloses,
+    small pieces left outside them are dropped by ``min_area``), and the dilation grows the
+    mask only into pixels that are not still: the safety margin is for pixels the cues could
+    not place, not for proven background.
+    """
     m = np.asarray(coarse, bool) | np.asarray(objects, bool) | np.asarray(edges, bool)
-    return regularise(m, close_size=close_size, min_area=min_area, dilate=dilate)
+    if still is None or not still.any():
+        return regularise(m, close_size=close_size, min_area=min_area, dilate=dilate)
+    still = np.asarray(still, bool)
+    core = regularise(m & ~still, close_size=close_size, min_area=min_area)
+    core = regularise(core & ~still, close_size=0, min_area=min_area)
+    if dilate > 0 and core.any():
+        grown = regularise(core, close_size=0, min_area=0, dilate=dilate)
+        core |= grown & ~still
+    return core
 
 
 def _regularise_crop(m: np.ndarray, close_size: int, min_area: int, dilate: int) -> np.ndarray:
