@@ -34,10 +34,12 @@ is not proven still, and the fine mask is what it was without the test.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
-from cfsr._words import ROW_PAD, n_words, range_times, row_words
+from cfsr._words import ROW_PAD, Words, n_words, range_times, row_words
 
 __all__ = ["still_pixels", "EDGE"]
 
@@ -187,15 +189,27 @@ def still_pixel(tm, ns, c, min_run, jump):  # pragma: no cover - numba
     return False, 0.0
 
 
+class _Test(NamedTuple):
+    """What :func:`still_pixel` is asked: at step ``c``, runs of ``min_run`` steps, a change of
+    ``jump`` (relative) between them, on the crop whose corner is image pixel ``(y0, x0)``."""
+
+    c: int
+    min_run: int
+    jump: float
+    y0: int
+    x0: int
+
+
 @njit(parallel=True, cache=True)
-def _still_kernel(packed, geo, span, c, y0, x0, cand, min_run, jump, kept, still, rate):
-    # pragma: no cover - numba
-    """:func:`still_pixel` of the pixels ``cand`` (a crop at ``(y0, x0)``) from their spikes in
-    ``span = (lo, hi)``: those in ``[lo, mid)`` from the words of a whole-frame scan ``kept =
-    (store, bases, s_lo, s_hi)`` (``mid = min(hi, s_hi)``; an empty store: ``mid = lo``), the
-    rest from words gathered row by row from the first to the last candidate."""
-    lo, hi = span
+def _still_kernel(src, kept, test, cand, still, rate):  # pragma: no cover - numba
+    """:func:`still_pixel` (``test``: :class:`_Test`) of the pixels ``cand`` from their spikes
+    in ``[src.lo, src.hi)`` (:class:`~cfsr._words.Words`): those in ``[lo, mid)`` from the
+    words of a whole-frame scan ``kept = (store, bases, s_lo, s_hi)`` (``mid = min(hi,
+    s_hi)``; an empty store: ``mid = lo``), the rest from words gathered row by row from the
+    first to the last candidate."""
+    packed, geo, lo, hi = src
     store, bases, s_lo, s_hi = kept
+    c, min_run, jump, y0, x0 = test
     mid = lo
     if store.shape[0] > 0 and s_lo <= lo:
         mid = max(lo, min(hi, s_hi))
@@ -285,16 +299,10 @@ def still_pixels(
         store, bases, s_lo, s_hi = words
         kept = (store, bases, int(s_lo), int(s_hi))
     _still_kernel(
-        src.packed,
-        src.geo,
-        (int(lo), int(hi)),
-        int(center),
-        y0,
-        x0,
-        crop,
-        int(min_run),
-        float(jump),
+        Words(src.packed, src.geo, int(lo), int(hi)),
         kept,
+        _Test(int(center), int(min_run), float(jump), y0, x0),
+        crop,
         s,
         v,
     )
