@@ -748,14 +748,18 @@ def fine_stage(
     # 3. DAISI edges (Eq. 10-14)
     edges = hs["daisi"] >= p["phi"]
     # 4. fine mask
-    fine = fine_mask(
-        coarse,
-        objects,
-        edges,
-        close_size=p["close_size"],
-        min_area=p["min_area"],
-        dilate=p["dilate"],
-    )
+    def cues(still: np.ndarray | None = None) -> np.ndarray:
+        return fine_mask(
+            coarse,
+            objects,
+            edges,
+            close_size=p["close_size"],
+            min_area=p["min_area"],
+            dilate=p["dilate"],
+            still=still,
+        )
+
+    fine = cues()
     region = fine  # what PatchMatch reconstructs
     left = None  # still pixels the reported fine mask leaves out: their run's rate
     if int(p.get("still_reach", 0)) > 0 and fine.any():
@@ -770,15 +774,7 @@ def fine_stage(
             words=hs["words"],
         )
         if still.any():
-            fine = fine_mask(
-                coarse,
-                objects,
-                edges,
-                close_size=p["close_size"],
-                min_area=p["min_area"],
-                dilate=p["dilate"],
-                still=still,
-            )
+            fine = cues(still)
             # the still pixels it leaves out take their run's rate (exact over 64-760
             # steps); PatchMatch keeps its region (what it matches there is unchanged:
             # a region without them cost the fan's moving pixels 3.7 % more squared error)
