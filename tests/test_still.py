@@ -118,6 +118,9 @@ def test_still_pixels_on_a_window_match_the_pixel_rule():
         for x in range(w):
             if (x + y) % 3 == 0:
                 rates = _fan_pixel(n, rng.uniform(0.05, 0.3), 231, 92, int(rng.integers(99)))
+            elif x % 2:  # moving texture: a new rate every 3-20 steps (rejected near t)
+                lengths = rng.integers(3, 21, n)
+                rates = np.repeat(rng.uniform(0.05, 0.6, n), lengths)[:n]
             else:
                 rates = np.full(n, rng.uniform(0.02, 0.6))
             times = _fire(rates, rng.uniform())
