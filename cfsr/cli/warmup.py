@@ -27,8 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--if-needed",
         action="store_true",
-        help="do nothing when a warm-up of this code already finished here (how './tasks' "
-        "compiles at install time)",
+        help="do nothing when a complete warm-up of this code already finished here (how "
+        "'./tasks' compiles at install time); methods named with --methods run regardless",
     )
 
 
