@@ -56,7 +56,7 @@ def _moving_spikes(n: int, h: int, w: int, vanish: int) -> np.ndarray:
     acc = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
     out = np.empty((n, h, w), np.uint8)
     rate = still.copy()
-    block = (slice(h // 3 + h // 3 + 4, h - 4), slice(w // 4, w // 2))
+    block = (slice(2 * (h // 3) + 4, h - 4), slice(w // 4, w // 2))  # below the band
     for t in range(n):
         x = (t // 2) % w
         rate[h // 3 : h // 3 + band.shape[0]] = band[:, x : x + w]
@@ -156,7 +156,8 @@ def warm_up(
     out: dict[str, float] = {}
     for name in names:
         t0 = time.perf_counter()
-        before, after = get_method(name).window(resolve_params(get_method(name)))
+        m = get_method(name)
+        before, after = m.window(resolve_params(m))
         need = before + after + 1  # the frame computed is the one at `before`
         packed = pack_frames(_moving_spikes(need, h, w, vanish=max(0, before - 100)))
         sr = StreamingReconstructor(name, layout, slack=need)

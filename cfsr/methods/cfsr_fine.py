@@ -781,23 +781,22 @@ def fine_stage(
             left = still & ~fine
             tfp = np.where(left, still_rate, tfp)
     masks = {"coarse": coarse, "fine": fine}
-    fine = region
     if ghosts is not None:
         # the ghosts are background and leave the fine mask, but stay in the region
         # PatchMatch reconstructs (at zero motion it averages 33 TFI frames there): left to
         # the static estimate, the car lost 1.1 dB (docs/methods.md, "Two-sided objects")
-        fine = fine | ghosts
-    if adaptive and not fine.any():
+        region = region | ghosts
+    if adaptive and not region.any():
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles it can
     # read, within the search margin of a fine-mask pixel)
     if adaptive:
         margin = p["pm_radius"] + p["pm_patch"] + int(3 * p["pm_sigma"]) + 1
-        tiles = pm_tiles(fine, margin)
+        tiles = pm_tiles(region, margin)
         ty, tx = np.nonzero(tiles)
         y0, y1 = ty.min() * TILE, min(h, (ty.max() + 1) * TILE)
         x0, x1 = tx.min() * TILE, min(w, (tx.max() + 1) * TILE)
-        domain = fine[y0:y1, x0:x1]
+        domain = region[y0:y1, x0:x1]
     else:
         y0, y1, x0, x1 = 0, h, 0, w
         tiles = None
@@ -821,14 +820,14 @@ def fine_stage(
         # temporal schedule: each target starts from the motion predicted by the nearer ones
         offsets_steps=[c - center for c in tcs[1:]],
     )
-    if not fine.any():  # always-full pipeline on a static window: the same TFP output
+    if not region.any():  # always-full pipeline on a static window: the same TFP output
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
     tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     crop = dyn[y0:y1, x0:x1]
     crop[domain] = refined[domain]
     # 6. ATSR (Eq. 7)
-    rate, _ = atsr_fuse(dyn, tfp, fine if left is None else fine & ~left, tfi=tfi_full)
+    rate, _ = atsr_fuse(dyn, tfp, region if left is None else region & ~left, tfi=tfi_full)
     return rate, masks
 
 
