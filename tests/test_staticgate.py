@@ -138,3 +138,25 @@ def test_the_streaming_window_holds_the_gates_spans_with_a_short_history(monkeyp
     monkeypatch.setattr(cf, "_history", no_history)
     out = sr.compute(sr.latest_step())
     assert not out.masks["fine"].any()
+
+
+@pytest.mark.parametrize("where", ["first", "middle", "last", "none"])
+def test_the_early_exit_gate_decides_as_the_two_counts_do_on_a_camera_frame(where):
+    # the gate stops at the first chunk (512 stored pixels) that changed, visiting chunks in
+    # a stride through the frame: a single changed pixel anywhere must still be found, and a
+    # passing gate returns every pixel's count
+    lay = Layout(400, 250)
+    rate = np.random.default_rng(3).uniform(0.01, 0.6, (250, 400))
+    s = _integrate_and_fire(rate, 340, seed=4)
+    y, x = {"first": (0, 0), "middle": (131, 207), "last": (249, 399), "none": (0, 0)}[where]
+    if where != "none":
+        quiet = np.flatnonzero(s[180:340, y, x] == 0)[:3] + 180
+        s[quiet, y, x] = 1
+    src = PackedWindow.from_packed(pack_frames(s), lay)
+    recent, before = span_counts(src, 180, 340), span_counts(src, 20, 180)
+    got = static_gate(src, 340, 160, 1)
+    if np.abs(recent - before).max() <= 1:
+        assert got is not None
+        np.testing.assert_array_equal(got, recent)
+    else:
+        assert where != "none" and got is None

@@ -15,6 +15,11 @@ within one spike of its span's integral; 1.9 % of full scale at the defaults), o
 leaves both counts equal. Sensor noise that moves counts
 by more than ``tol`` makes the gate fail, which costs only the gate's time: the window then
 takes the whole pipeline.
+
+The gate counts both spans in one pass and stops at the first chunk of pixels that changed,
+after probing every 8th chunk first: a moving window pays ~0.1 ms for it instead of two
+whole-frame counts (5-6 ms of a CFSR frame on the demo disk scene), a passing one about what
+the two counts cost.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cfsr._packed import count_packed, stored_view, upright
+from cfsr._packed import CHUNK, LANES, count_packed, stored_view, upright
 from cfsr._words import PackedWindow
 from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
 
@@ -67,16 +72,54 @@ def span_isi_rate(
 
 
 @njit(parallel=True, cache=True)
-def _max_change(a, b):  # pragma: no cover - numba
-    """``max |a - b|`` over two ``(H, W)`` views, without the temporaries numpy would make."""
-    h, w = a.shape
-    worst = np.zeros(h, np.int64)
-    for y in prange(h):
-        m = 0
-        for x in range(w):
-            m = max(m, abs(a[y, x] - b[y, x]))
-        worst[y] = m
-    return worst.max() if h else 0
+def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed):
+    # pragma: no cover - numba
+    """Spikes of every stored pixel in ``[a + window, a + 2 * window)`` into ``recent`` and,
+    against ``[a, a + window)``, ``failed[0] = 1`` once some image pixel's two counts differ
+    by more than ``tol``; after that the remaining chunks are skipped. Chunks of 64 bytes
+    (512 stored pixels, one cache line of every frame, SWAR lane counts as
+    :func:`cfsr._packed.count_packed`) are taken in ``order`` (:func:`_probe_order`).
+    ``raster = (stored width, height, width)``: stored pixel ``p`` is an image pixel when
+    ``p // sw < height`` and ``p % sw < width`` (head columns at the right of every row)."""
+    nb = packed.shape[1]
+    sw, height, width = raster
+    for i in prange(order.shape[0]):
+        if failed[0]:
+            continue
+        b0 = order[i] * CHUNK
+        m = min(nb, b0 + CHUNK) - b0
+        old = np.zeros(CHUNK * 8, np.int64)
+        new = np.zeros(CHUNK * 8, np.int64)
+        acc_o = np.empty(CHUNK, np.uint64)
+        acc_n = np.empty(CHUNK, np.uint64)
+        done = 0
+        while done < window:  # lanes hold up to 255 spikes: spilled every 255 frames
+            step = min(window - done, 255)
+            acc_o[:m] = 0
+            acc_n[:m] = 0
+            for tt in range(a + done, a + done + step):
+                row_o = packed[tt]
+                row_n = packed[tt + window]
+                for j in range(m):
+                    acc_o[j] += lanes[row_o[b0 + j]]
+                    acc_n[j] += lanes[row_n[b0 + j]]
+            for j in range(m):
+                vo = acc_o[j]
+                vn = acc_n[j]
+                for k in range(8):
+                    sh = np.uint64(8 * k)
+                    old[j * 8 + k] += np.int64((vo >> sh) & np.uint64(0xFF))
+                    new[j * 8 + k] += np.int64((vn >> sh) & np.uint64(0xFF))
+            done += step
+        p0 = b0 * 8
+        changed = False
+        for q in range(m * 8):
+            recent[p0 + q] = new[q]
+            if abs(new[q] - old[q]) > tol:
+                pix = p0 + q
+                changed |= pix // sw < height and pix % sw < width
+        if changed:
+            failed[0] = 1
 
 
 def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarray | None:
@@ -98,7 +141,29 @@ def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarra
     """
     if tol < 0 or window < 1 or end - 2 * window < 0 or end > src.n:
         return None
-    recent = _stored(src, count_packed(src.packed, end - window, end))
-    before = _stored(src, count_packed(src.packed, end - 2 * window, end - window))
+    nb = src.packed.shape[1]
+    nchunks = (nb + CHUNK - 1) // CHUNK
+    recent = np.zeros(nb * 8, np.int64)
+    failed = np.zeros(1, np.int64)
+    _gate_kernel(
+        np.ascontiguousarray(src.packed, dtype=np.uint8),
+        end - 2 * window,
+        window,
+        LANES,
+        (int(src.geo[0]), src.h, src.w),
+        int(tol),
+        _probe_order(nchunks),
+        recent,
+        failed,
+    )
     # head columns (right of every stored row) are not pixels: only the image's counts
-    return _upright(src, recent) if _max_change(recent, before) <= tol else None
+    return None if failed[0] else _upright(src, _stored(src, recent))
+
+
+def _probe_order(n: int, every: int = 8) -> np.ndarray:
+    """``0 .. n-1`` with every ``every``-th chunk first (a probe spread over the frame that a
+    mover almost always touches), then the others in memory order (what a passing gate reads
+    fastest)."""
+    probe = np.arange(0, n, every, dtype=np.int64)
+    rest = np.setdiff1d(np.arange(n, dtype=np.int64), probe)
+    return np.concatenate([probe, rest])
