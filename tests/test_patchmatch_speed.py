@@ -158,3 +158,25 @@ def test_nnf_multi_dispatches_to_the_two_entry_points():
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="offsets_steps"):
         nnf_temporal(ref, tg, mask, steps[:-1])
+
+
+def test_the_temporal_search_reads_padded_guides_as_it_reads_its_own_copy():
+    # CFSR writes its guides straight into the buffer the search reads (padded_guides,
+    # finish_padding): the matches must be the ones of the search's own padded copy
+    from cfsr.methods.patchmatch import finish_padding, padded_guides
+
+    rng = np.random.default_rng(11)
+    n, h, w = 5, 37, 53
+    frames = rng.random((n + 1, h, w), dtype=np.float32)
+    mask = rng.random((h, w)) < 0.3
+    steps = [-3, 3, -6, 6, -9]
+    for patch in (3, 6):
+        want = nnf_temporal(frames[0], frames[1:], mask, steps, patch=patch, seed=4)
+        buf, view = padded_guides(n + 1, h, w, patch)
+        view[...] = frames
+        finish_padding(buf, patch)
+        got = nnf_temporal(view[0], view[1:], mask, steps, patch=patch, seed=4, padded=buf)
+        for a, b in zip(want, got, strict=True):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="padded guides"):
+        nnf_temporal(frames[0], frames[1:], mask, steps, patch=6, padded=buf[:, :-1])

@@ -97,7 +97,7 @@ from cfsr.methods.daisi import daisi_from_times, log_table
 from cfsr.methods.distinction import distinct_in_words, long_isi_buffer
 from cfsr.methods.masks import fine_mask
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
-from cfsr.methods.patchmatch import patchmatch_fuse
+from cfsr.methods.patchmatch import finish_padding, padded_guides, patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 from cfsr.methods.staticgate import span_counts, span_isi_rate, static_gate
@@ -804,7 +804,12 @@ def fine_stage(
     offs = [p["pm_step"] * i for i in range(1, p["pm_count"] + 1)]
     # the reference t first, then t -+ step*i inside the window
     tcs = [center] + [c for s in offs for c in (center - s, center + s) if 0 <= c < n]
-    raw, guides = pm_frames(src, tcs, (int(y0), int(y1), int(x0), int(x1)), p, tiles)
+    # the guides go straight into the buffer the search reads (no padded copy of 33 frames)
+    padded, view = padded_guides(len(tcs), int(y1 - y0), int(x1 - x0), int(p["pm_patch"]))
+    raw, guides = pm_frames(
+        src, tcs, (int(y0), int(y1), int(x0), int(x1)), p, tiles, guide_out=view
+    )
+    finish_padding(padded, int(p["pm_patch"]))
     refined = patchmatch_fuse(
         raw[0],
         guides[0],
@@ -819,6 +824,7 @@ def fine_stage(
         origin=(int(y0), int(x0)),
         # temporal schedule: each target starts from the motion predicted by the nearer ones
         offsets_steps=[c - center for c in tcs[1:]],
+        padded=padded,
     )
     if not region.any():  # always-full pipeline on a static window: the same TFP output
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks

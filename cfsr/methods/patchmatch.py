@@ -214,6 +214,22 @@ def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     return _ssd(ref, tgt, y, x, ty, tx, patch, limit)
 
 
+def _margins(patch: int, extra: int) -> tuple[int, int, int]:
+    """Rows/columns of padding ``(before, rows after, columns after)`` for :func:`_ssd`."""
+    # (patch - 1) // 2 before: the 2-before/3-after 6 x 6 patch of the paper's default, and a
+    # centred window for odd sizes (patch // 2 - 1 went negative for a 1 x 1 patch)
+    lo = (patch - 1) // 2
+    return lo, patch - 1 - lo, patch - 1 - lo + extra
+
+
+def _fill_margins(out: np.ndarray, lo: int, hh: int, ww: int) -> None:
+    """Edge-replicate the interior ``out[..., lo:lo + hh, lo:lo + ww]`` into the margins."""
+    out[..., :lo, lo : lo + ww] = out[..., lo : lo + 1, lo : lo + ww]
+    out[..., lo + hh :, lo : lo + ww] = out[..., lo + hh - 1 : lo + hh, lo : lo + ww]
+    out[..., :, :lo] = out[..., :, lo : lo + 1]
+    out[..., :, lo + ww :] = out[..., :, lo + ww - 1 : lo + ww]
+
+
 def _pad(img: np.ndarray, patch: int, extra: int = 0) -> np.ndarray:
     """Edge-replicate padding of the last two axes for :func:`_ssd` (float32, contiguous).
 
@@ -221,18 +237,31 @@ def _pad(img: np.ndarray, patch: int, extra: int = 0) -> np.ndarray:
     from any block start inside the frame. The same values as ``np.pad(..., mode="edge")``,
     written by slice assignments (several times faster on the target stack).
     """
-    # (patch - 1) // 2 before: the 2-before/3-after 6 x 6 patch of the paper's default, and a
-    # centred window for odd sizes (patch // 2 - 1 went negative for a 1 x 1 patch)
-    lo = (patch - 1) // 2
-    hi = patch - 1 - lo + extra
+    lo, bottom, right = _margins(patch, extra)
     hh, ww = img.shape[-2:]
-    out = np.empty(img.shape[:-2] + (hh + lo + patch - 1 - lo, ww + lo + hi), np.float32)
+    out = np.empty(img.shape[:-2] + (hh + lo + bottom, ww + lo + right), np.float32)
     out[..., lo : lo + hh, lo : lo + ww] = img
-    out[..., :lo, lo : lo + ww] = img[..., :1, :]
-    out[..., lo + hh :, lo : lo + ww] = img[..., -1:, :]
-    out[..., :, :lo] = out[..., :, lo : lo + 1]
-    out[..., :, lo + ww :] = out[..., :, lo + ww - 1 : lo + ww]
+    _fill_margins(out, lo, hh, ww)
     return out
+
+
+def padded_guides(n: int, height: int, width: int, patch: int = PATCH):
+    """A stack of ``n`` guide images of ``height x width`` already laid out as the temporal
+    search reads them: ``(buffer, interior)``, an uninitialised float32 buffer with the
+    search's margins and the ``(n, height, width)`` view of its images. Write the guides
+    (reference first, then the targets) into ``interior``, call :func:`finish_padding`, and
+    pass ``padded=buffer`` to :func:`nnf_temporal` (or :func:`patchmatch_fuse`): the search
+    then reads the buffer instead of copying the guides into a padded one."""
+    lo, bottom, right = _margins(patch, _EXTRA)
+    buf = np.empty((n, height + lo + bottom, width + lo + right), np.float32)
+    return buf, buf[:, lo : lo + height, lo : lo + width]
+
+
+def finish_padding(buf: np.ndarray, patch: int = PATCH) -> np.ndarray:
+    """Fill the margins of a :func:`padded_guides` buffer from its images (edge values)."""
+    lo, bottom, right = _margins(patch, _EXTRA)
+    _fill_margins(buf, lo, buf.shape[-2] - lo - bottom, buf.shape[-1] - lo - right)
+    return buf
 
 
 @njit(parallel=True, cache=True)
@@ -589,21 +618,28 @@ def _prepare(ref, targets, mask, patch: int, iters: int, max_radius: int, origin
     """Checked float32 images, the masked pixels and zeroed outputs of both searches."""
     ref = np.ascontiguousarray(ref, dtype=np.float32)
     targets = np.ascontiguousarray(targets, dtype=np.float32)
-    if targets.ndim != 3 or targets.shape[1:] != ref.shape:
-        raise ValueError(f"targets {targets.shape} do not match reference {ref.shape}")
+    found = _matching(ref.shape, targets.shape, mask, patch, iters, max_radius, origin)
+    return (ref, targets, *found)
+
+
+def _matching(ref_shape, targets_shape, mask, patch: int, iters: int, max_radius: int, origin):
+    """The masked pixels and zeroed outputs for images of these shapes, settings checked."""
+    if len(targets_shape) != 3 or tuple(targets_shape[1:]) != tuple(ref_shape):
+        got, want = tuple(targets_shape), tuple(ref_shape)
+        raise ValueError(f"targets {got} do not match reference {want}")
     if patch < 1 or iters < 0 or max_radius < 0:
         raise ValueError(f"bad PatchMatch settings patch={patch} iters={iters} r={max_radius}")
     ys, xs = np.nonzero(np.asarray(mask, dtype=bool))
     ys = ys.astype(np.int64)
     xs = xs.astype(np.int64)
-    index = np.full(ref.shape, -1, np.int64)
+    index = np.full(tuple(ref_shape), -1, np.int64)
     index[ys, xs] = np.arange(ys.size)
     # the random search of a pixel is keyed by its position in the full frame, so the same
     # pixel draws the same offsets whatever else is matched (crop or whole frame)
     keys = (ys + int(origin[0])) * np.int64(_ROW_KEY) + (xs + int(origin[1]))
-    off = np.zeros((targets.shape[0], ys.size, 2), np.int32)
-    cost = np.zeros((targets.shape[0], ys.size), np.float32)
-    return ref, targets, _Pixels(ys, xs, index, keys), off, cost
+    off = np.zeros((targets_shape[0], ys.size, 2), np.int32)
+    cost = np.zeros((targets_shape[0], ys.size), np.float32)
+    return _Pixels(ys, xs, index, keys), off, cost
 
 
 def _search(patch: int, seed: int) -> _Search:
@@ -685,6 +721,7 @@ def nnf_temporal(
     band: int = BAND,
     seed: int = 0,
     origin: tuple[int, int] = (0, 0),
+    padded: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Nearest-neighbour fields from ``ref`` to each of ``targets`` by the temporal schedule.
 
@@ -706,6 +743,9 @@ def nnf_temporal(
         Random-search radius (pixels) and scans of a predicted target's local search.
     band : int
         Height (full-frame rows) of the bands that run in parallel.
+    padded : ndarray (N + 1, ...) float32, optional
+        ``ref`` and ``targets`` already padded (:func:`padded_guides`, :func:`finish_padding`;
+        ``ref`` and ``targets`` are then views of its images): read as they are, not copied.
 
     Returns
     -------
@@ -715,9 +755,21 @@ def nnf_temporal(
     steps = [int(v) for v in offsets_steps]
     if len(steps) != np.shape(targets)[0]:
         raise ValueError(f"{len(steps)} offsets_steps for {np.shape(targets)[0]} targets")
-    ref, targets, pixels, off, cost = _prepare(ref, targets, mask, patch, iters, max_radius, origin)
+    if padded is None:
+        ref, targets, pixels, off, cost = _prepare(
+            ref, targets, mask, patch, iters, max_radius, origin
+        )
+    else:  # the images are the padded buffer's: only their shapes are checked
+        pixels, off, cost = _matching(
+            np.shape(ref), np.shape(targets), mask, patch, iters, max_radius, origin
+        )
+        lo, bottom, right = _margins(patch, _EXTRA)
+        n, hh, ww = np.shape(targets)
+        want = (n + 1, hh + lo + bottom, ww + lo + right)
+        if padded.shape != want or padded.dtype != np.float32 or not padded.flags.c_contiguous:
+            raise ValueError(f"padded guides {padded.shape} {padded.dtype}, need {want} float32")
     ys, xs = pixels.ys, pixels.xs
-    if ys.size and targets.shape[0]:
+    if ys.size and np.shape(targets)[0]:
         plan = _temporal_plan(steps, iters, max_radius, near_radius, near_iters)
         # blocks of masked pixels in one row and one BLOCK-column cell of the full frame, and
         # bands of ``band`` full-frame rows: a crop and the whole frame cut alike
@@ -732,8 +784,8 @@ def nnf_temporal(
         cuts = np.nonzero(np.diff(bid))[0] + 1
         bands = np.concatenate([[0], cuts, [starts.size - 1]]).astype(np.int64)
         _nnf_temporal_kernel(
-            _pad(ref, patch, _EXTRA),
-            _pad(targets, patch, _EXTRA),
+            _pad(ref, patch, _EXTRA) if padded is None else padded[0],
+            _pad(targets, patch, _EXTRA) if padded is None else padded[1:],
             pixels,
             _Blocks(starts, bkeys, bands),
             plan,
@@ -745,7 +797,7 @@ def nnf_temporal(
 
 
 # keywords of the temporal schedule alone (nnf_multi drops them for the independent one)
-_TEMPORAL_ONLY = ("near_radius", "near_iters", "band")
+_TEMPORAL_ONLY = ("near_radius", "near_iters", "band", "padded")
 
 
 def nnf_multi(
@@ -754,7 +806,8 @@ def nnf_multi(
     """Nearest-neighbour fields from ``ref`` to each of ``targets`` on the ``mask`` pixels.
 
     Picks the schedule: without ``offsets_steps``, :func:`nnf_independent` (every target its
-    own full search; ``near_radius``, ``near_iters`` and ``band`` are accepted and not used);
+    own full search; ``near_radius``, ``near_iters``, ``band`` and ``padded`` are accepted and
+    not used);
     with them (each target's signed step from the reference), :func:`nnf_temporal`. The
     keywords ``search`` (``patch``, ``iters``, ``max_radius``, ``seed``, ``origin``, ...), their
     defaults and the result are theirs.

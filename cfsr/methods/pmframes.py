@@ -247,6 +247,7 @@ def pm_frames(
     box: tuple[int, int, int, int],
     p: Mapping[str, Any],
     tiles: np.ndarray | None = None,
+    guide_out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Raw TFI rates and matching guides at ``centers`` on ``box = (y0, y1, x0, x1)``.
 
@@ -255,7 +256,10 @@ def pm_frames(
     scenes (a fixed-window TFP guide is mostly 0 or 1/w in low light). The same numbers as
     ``tfi_rates`` and ``adaptive_rates`` on the crop. ``tiles`` (full-frame grid of
     :data:`TILE`-pixel tiles, see :func:`pm_tiles`): only the tiles marked are computed, the
-    rest of the box holds rate 1 (never read by PatchMatch).
+    rest of the box holds rate 1 (never read by PatchMatch). ``guide_out`` (float32
+    ``(len(centers), y1 - y0, x1 - x0)``, may be a strided view such as the images of
+    :func:`cfsr.methods.patchmatch.padded_guides`): the guides are written there and it is
+    returned as the guides.
     """
     n = src.n
     y0, y1, x0, x1 = box
@@ -285,10 +289,13 @@ def pm_frames(
     )
     g = raw if thr <= 0 else tfa
     if p["pm_sigma"] <= 0:
+        if guide_out is not None:
+            np.copyto(guide_out, g)
+            return raw, guide_out
         return raw, g.copy() if thr <= 0 else g
     import cv2
 
-    out = np.empty_like(g)
+    out = np.empty_like(g) if guide_out is None else guide_out
     sigma = float(p["pm_sigma"])
 
     def blur(ks: range) -> None:
