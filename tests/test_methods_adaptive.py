@@ -89,6 +89,14 @@ def test_mog_only_where_the_history_varies_finds_the_same_objects():
     assert full[10:18, 30:41].all()
     still = np.repeat(u8[:1], 12, axis=0)
     assert not cf._mog_objects(still, 20.0, True, p, 12).any()
+    # the two-sided test (f: a sharp rate at t, not a history frame) on the varying pixels
+    # gathered into one row finds what MOG on the whole frame finds
+    rate = rng.random((40, 60)).astype(np.float32)
+    sharp = cf._Sharp(rate, np.full((40, 60), 4, np.int32), u8[-1] / np.float32(255), 16)
+    full = cf._mog_objects(u8, 20.0, False, p, 12, sharp, 1.0)
+    fast = cf._mog_objects(u8, 20.0, True, p, 12, sharp, 1.0)
+    np.testing.assert_array_equal(fast, full)
+    assert full.any() and not full.all()
 
 
 def _static_spikes(steps=900, h=24, w=36, seed=0):
