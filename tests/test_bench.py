@@ -116,14 +116,20 @@ def test_bench_quick_sweep(tmp_path, capsys):
         by.setdefault(r["scenario"], []).append(r)
     assert list(by) == ["static", "~10% moving", "~30% moving", "full motion"]
     for scene, rs in by.items():
-        assert len(rs) == 4, scene  # tfp, adaptive, adaptive with the gate off, always-full
+        # tfp, adaptive, adaptive with the tiles off, with the gate off, always-full
+        assert len(rs) == 5, scene
         for r in rs:
             assert r["ms_per_frame"] > 0 and math.isfinite(r["psnr_all"])
             if r["method"] == "cfsr":
                 # the bar: the adaptive pipeline's error within 0.1 dB of the full one
                 assert abs(r["psnr_delta_vs_full"]) <= 0.1, (scene, r)
-    gates = [(r["adaptive"], r["static_gate"]) for r in by["static"] if r["method"] == "cfsr"]
-    assert gates == [(True, True), (True, False), (False, False)]
+    gates = [
+        (r["adaptive"], r["static_gate"], r["tile_gate"])
+        for r in by["static"]
+        if r["method"] == "cfsr"
+    ]
+    on, off = True, False
+    assert gates == [(on, on, on), (on, on, off), (on, off, off), (off, off, off)]
     static = [r for r in by["static"] if r["method"] == "cfsr"]
     assert all(r["psnr_delta_vs_full"] == 0.0 and r["fine_fraction"] == 0.0 for r in static)
     assert "worst frame" in capsys.readouterr().out

@@ -5,7 +5,9 @@
   clipped ranges (the PatchMatch frames' TFI and TFA: tests/test_pmframes.py).
 * MOG run only where the history varies by phi0 or more finds the same objects.
 * A window without a fine-dynamic pixel gives the TFP path's rate, adaptive or not.
-* The adaptive pipeline stays within 0.1 dB of the always-full one on a moving scene.
+* The adaptive pipeline stays within 0.1 dB of the always-full one on a moving scene; without
+  the gate per tile its masks are the full pipeline's.
+* Outside the tiles the gate per tile passes, the history scan gives static pixels.
 """
 
 from __future__ import annotations
@@ -139,19 +141,53 @@ def test_adaptive_within_a_tenth_of_a_db_of_the_full_pipeline():
 
     sim = simulate("disk", 1000, seed=0, height=100, width=160)
     times = [700, 760]
-    a, ma = cfsr.reconstruct(sim.spikes, "cfsr", times, return_masks=True, adaptive=True)
     f, mf = cfsr.reconstruct(sim.spikes, "cfsr", times, return_masks=True, adaptive=False)
+    # without the gate per tile, the adaptive pipeline's masks are the full one's
+    a, ma = cfsr.reconstruct(
+        sim.spikes, "cfsr", times, return_masks=True, adaptive=True, static_tile=0
+    )
+    # with it, the history of a static tile is its frame at t and the history frames' ATSR
+    # scales are summed over the other tiles: masks and rates may move a little
+    g, mg = cfsr.reconstruct(sim.spikes, "cfsr", times, return_masks=True, adaptive=True)
     gain = sim.rate_scale
     for k, t in enumerate(times):
         np.testing.assert_array_equal(ma["fine"][k], mf["fine"][k])
         assert 0.0 < ma["fine"][k].mean() < 1.0
         gt = to_display(sim.gt_rate(t), gain)
-        pa = psnr(gt, to_display(a[k], gain))
         pf = psnr(gt, to_display(f[k], gain))
-        assert abs(pa - pf) <= 0.1, (t, pa, pf)
+        for got in (a, g):
+            pa = psnr(gt, to_display(got[k], gain))
+            assert abs(pa - pf) <= 0.1, (t, pa, pf)
         # outside the fine mask both are the same scaled TFP
         out = ~ma["fine"][k]
         np.testing.assert_array_equal(a[k][out], f[k][out])
+        both = mg["fine"][k] & mf["fine"][k]
+        assert both.sum() >= 0.98 * (mg["fine"][k] | mf["fine"][k]).sum()
+
+
+def test_static_tiles_take_their_frame_at_t_as_history_and_no_daisi():
+    # the history scan outside the active tiles: no proof, no DAISI, every history frame the
+    # MOG frame at t; inside them (and the static estimate at t everywhere) as without tiles
+    from cfsr.simulate import simulate
+
+    sim = simulate("disk", 1000, seed=0, height=64, width=96)
+    p = _params()
+    src = PackedWindow.from_frames(sim.spikes)
+    c = 700
+    active = np.zeros((64, 96), bool)
+    active[8:56, 20:76] = True
+    whole = cf._history(src, c, p)
+    tiled = cf._history(src, c, p, active)
+    np.testing.assert_array_equal(tiled["tfp"], whole["tfp"])
+    np.testing.assert_array_equal(tiled["daisi"][active], whole["daisi"][active])
+    assert not tiled["daisi"][~active].any() and whole["daisi"][~active].any()
+    assert whole["coarse"][active].any()  # a moving scene: the second pass ran
+    np.testing.assert_array_equal(tiled["coarse"], whole["coarse"] & active)
+    np.testing.assert_array_equal(tiled["tfi"](), whole["tfi"]())
+    rates = tiled["rates"]
+    np.testing.assert_array_equal(rates[-1], whole["rates"][-1])  # exact: it sets MOG's gain
+    still = rates[:, ~active]
+    np.testing.assert_array_equal(still, np.broadcast_to(rates[-1][~active], still.shape))
 
 
 @pytest.mark.parametrize("fliplr", [False, True])

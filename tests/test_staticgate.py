@@ -160,3 +160,29 @@ def test_the_early_exit_gate_decides_as_the_two_counts_do_on_a_camera_frame(wher
         np.testing.assert_array_equal(got, recent)
     else:
         assert where != "none" and got is None
+
+
+@pytest.mark.parametrize("flipud,fliplr", [(False, False), (True, True)])
+def test_the_gate_per_tile_marks_a_changed_tile_and_its_neighbours(flipud, fliplr):
+    # one pixel changes by three spikes: its 16 x 16 tile and the tiles around it are active,
+    # the rest of the frame is not (the gate per tile sees what the whole-frame gate sees)
+    from cfsr.methods.staticgate import active_tiles
+
+    lay = Layout(100, 70, flipud=flipud, fliplr=fliplr)
+    rate = np.random.default_rng(8).uniform(0.01, 0.6, (70, 100))
+    s = _integrate_and_fire(rate, 340, seed=2)
+    src = PackedWindow.from_packed(pack_frames(s, flipud=flipud, fliplr=fliplr), lay)
+    assert not active_tiles(src, 340, 160, 1, 16).any()  # static: no tile changed
+    y, x = 37, 50  # tile (2, 3)
+    quiet = np.flatnonzero(s[180:340, y, x] == 0)[:3] + 180
+    s[quiet, y, x] = 1
+    src = PackedWindow.from_packed(pack_frames(s, flipud=flipud, fliplr=fliplr), lay)
+    got = active_tiles(src, 340, 160, 1, 16)
+    want = np.zeros((70, 100), bool)
+    want[16:64, 32:80] = True  # tile rows 1-3, tile columns 2-4
+    np.testing.assert_array_equal(got, want)
+    assert not active_tiles(src, 340, 160, 3, 16).any()  # a change within tol
+    assert active_tiles(src, 340, 160, -1, 16) is None  # gate off: no tile is static
+    assert active_tiles(src, 300, 160, 1, 16) is None  # the spans do not fit before step 0
+    far = active_tiles(src, 340, 160, 1, 16, margin=0)
+    np.testing.assert_array_equal(far, np.pad(np.ones((16, 16), bool), ((32, 22), (48, 36))))

@@ -2,9 +2,11 @@
 
 Scenes: the static scene, then the rotating disk with radii that cover ~10 %, ~30 % and all of
 the frame. For each, ``cfsr`` runs with ``adaptive=True`` (skip what the scene does not need)
-and ``adaptive=False`` (every stage on the whole frame), and adaptive with its static gate off
-(``static_tol=-1``: what the exact proof of a static window costs, and what the gate adds to a
-moving one); TFP is timed beside them as the floor a fully static window should approach.
+and ``adaptive=False`` (every stage on the whole frame), adaptive with its gate per tile off
+(``static_tile=0``: what the tiles save on a moving window), and adaptive with its static gate
+off (``static_tol=-1``, which also turns the tiles off: what the exact proof of a static window
+costs, and what the gate adds to a moving one); TFP is timed beside them as the floor a fully
+static window should approach.
 Costs are steady-state ms per output frame through the streaming reconstructor; errors are
 PSNR against the simulator's ground truth.
 """
@@ -44,6 +46,7 @@ def sweep(args: argparse.Namespace, bar) -> dict[str, Any]:
     variants = (
         ("tfp", {}),
         ("cfsr", {"adaptive": True}),
+        ("cfsr", {"adaptive": True, "static_tile": 0}),
         ("cfsr", {"adaptive": True, "static_tol": -1}),
         ("cfsr", {"adaptive": False}),
     )
@@ -80,6 +83,12 @@ def sweep(args: argparse.Namespace, bar) -> dict[str, Any]:
                     "static_gate": None
                     if name != "cfsr"
                     else bool(params["adaptive"]) and params.get("static_tol") != -1,
+                    # the gate per tile needs the gate (static_tol >= 0)
+                    "tile_gate": None
+                    if name != "cfsr"
+                    else bool(params["adaptive"])
+                    and params.get("static_tol") != -1
+                    and params.get("static_tile") != 0,
                     "ms_per_frame": sec * 1e3,
                     "psnr_all": float(np.mean(ps)),
                     "psnr_frames": ps,
@@ -104,7 +113,9 @@ def _variant(r: dict[str, Any]) -> str:
         return r["method"]
     if not r["adaptive"]:
         return "cfsr always-full"
-    return "cfsr adaptive" if r["static_gate"] else "cfsr adaptive, gate off"
+    if not r["static_gate"]:
+        return "cfsr adaptive, gate off"
+    return "cfsr adaptive" if r.get("tile_gate", True) else "cfsr adaptive, tiles off"
 
 
 def print_sweep(res: dict[str, Any]) -> None:

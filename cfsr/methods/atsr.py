@@ -112,10 +112,14 @@ def atsr_fuse(
 
 
 @njit(parallel=True, cache=True)
-def _fuse_isi_kernel(isi, tfp, mask, alpha_max, out):  # pragma: no cover - numba
+def _fuse_isi_kernel(isi, tfp, mask, counted, alpha_max, out):  # pragma: no cover - numba
     """:func:`atsr_fuse` of each frame ``j`` (flat rows), the dynamic rate being TFI
-    ``float32(1 / isi)``; the same sums (float64, pixel order), scale and paste."""
+    ``float32(1 / isi)``; the same sums (float64, pixel order), scale and paste. The sums of
+    the frames before the last take only the static pixels where ``counted`` (flat bool;
+    empty: all)."""
+    last = isi.shape[0] - 1
     for j in prange(isi.shape[0]):
+        every = counted.shape[0] == 0 or j == last
         n = isi.shape[1]
         dynamic = False
         static = False
@@ -124,7 +128,7 @@ def _fuse_isi_kernel(isi, tfp, mask, alpha_max, out):  # pragma: no cover - numb
         for i in range(n):
             if mask[j, i]:
                 dynamic = True
-            else:
+            elif every or counted[i]:
                 static = True
                 num += np.float32(1.0 / isi[j, i])
                 den += tfp[j, i]
@@ -143,7 +147,12 @@ def _fuse_isi_kernel(isi, tfp, mask, alpha_max, out):  # pragma: no cover - numb
 
 
 def atsr_fuse_isi(
-    isi: np.ndarray, tfp: np.ndarray, mask: np.ndarray, *, alpha_max: float = 4.0
+    isi: np.ndarray,
+    tfp: np.ndarray,
+    mask: np.ndarray,
+    *,
+    alpha_max: float = 4.0,
+    counted: np.ndarray | None = None,
 ) -> np.ndarray:
     """CSR frames from TFI intervals: :func:`atsr_fuse` with ``dynamic = tfi = 1 / isi`` for
     every frame of a stack, frames without a dynamic pixel giving their clipped TFP.
@@ -156,6 +165,10 @@ def atsr_fuse_isi(
         TFP rates (spikes/step, Eq. 4).
     mask : ndarray (K, H, W) bool
         Dynamic regions.
+    counted : ndarray (H, W) bool, optional
+        The pixels whose static values the scales of the frames before the last sum (default:
+        all; the last frame's scale sums every static pixel); the others' ``isi`` in those
+        frames is not read unless they are dynamic.
 
     Returns
     -------
@@ -165,10 +178,12 @@ def atsr_fuse_isi(
     """
     k = isi.shape[0]
     out = np.empty(isi.shape, np.float32)
+    sel = np.empty(0, np.bool_) if counted is None else np.ascontiguousarray(counted, bool)
     _fuse_isi_kernel(
         np.ascontiguousarray(isi).reshape(k, -1),
         np.ascontiguousarray(tfp, dtype=np.float32).reshape(k, -1),
         np.ascontiguousarray(mask, dtype=bool).reshape(k, -1),
+        sel.reshape(-1),
         float(alpha_max),
         out.reshape(k, -1),
     )

@@ -40,7 +40,10 @@ the calibration of every default are in docs/methods.md):
 
 "Skip what the scene does not need" (``adaptive``, default True): a window whose spike counts did
 not change over the last two ``static_window`` spans (:mod:`cfsr.methods.staticgate`) is output
-as the TFP at once, with empty masks; otherwise the history scan proves most
+as the TFP at once, with empty masks; otherwise the same test per ``static_tile`` tile leaves
+the tiles that pass it, with their neighbours, static without the proofs below (no
+distinct-ISI walk, DAISI or interval spread there; their MOG history is their frame at t);
+the history scan proves most
 pixels static in one walk of their spikes, and runs its second pass (TFI at every history step,
 coarse masks) only when some pixel is not proven static; an empty fine mask skips the TFI frames
 and PatchMatch entirely (the output is then the plain TFP); MOG runs only where the 8-bit
@@ -100,7 +103,7 @@ from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import finish_padding, padded_guides, patchmatch_fuse
 from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
-from cfsr.methods.staticgate import span_counts, span_isi_rate, static_gate
+from cfsr.methods.staticgate import active_tiles, span_counts, span_isi_rate, static_gate
 from cfsr.methods.steady import steady_range
 from cfsr.methods.still import still_pixels
 from cfsr.methods.tfp import STATIC_ESTIMATORS, span_rate, tfp_span
@@ -281,6 +284,17 @@ FINE_PARAMS: dict[str, Param] = {
         minimum=-1,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
+    # the gate per tile: tiles that pass it, and whose neighbours pass it, skip the proofs
+    # the whole-frame stages would spend on them (docs/methods.md, "A gate per tile")
+    "static_tile": Param(
+        16,
+        "pixels",
+        "adaptive: side of the tiles the static gate also tests one by one; a tile whose "
+        "counts and whose neighbours' counts pass is static without a proof (0: whole frame "
+        "only)",
+        minimum=0,
+        maximum=4096,
+    ),
     # the gate's two spans lie back to back before t
     "static_window": Param(
         160,
@@ -451,7 +465,7 @@ class _Daisi(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
+def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
     # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
 
@@ -464,7 +478,10 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
     edge is counted once), or where ``isi_est[j]`` the ``isi`` static rate over the same spans
     (:func:`cfsr.methods.tfp.span_rate`, first and last spike by two bit scans; the TFI at
     ``cents[j]``, ``m`` steps each side, below two spikes); DAISI at t. The words stay in
-    ``kept`` (:class:`~cfsr._words.Stored`) for the second pass.
+    ``kept`` (:class:`~cfsr._words.Stored`) for the second pass. Where ``active`` (bool ``(H,
+    W)``, or empty: every pixel) is False -- a tile the static gate passes -- only the last two
+    spans (the MOG frame at t and the static span at t) are computed, every history frame
+    takes the first of them, and ``ub`` and DAISI are 0.
     """
     packed, geo, lo, hi = src
     u_lo, u_hi, span, theta = union
@@ -472,6 +489,7 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
     c, dspan, d_lo, d_hi, logs = dai
     store, bases = kept
     h, w = ub.shape
+    every = active.shape[0] == 0
     n_all = packed.shape[0]
     n_win = ia.shape[0]
     nb = bounds.shape[0]
@@ -490,11 +508,21 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
         bases[y, 1] = step
         for x in range(w):
             r = base + step * x
-            ub[y, x] = distinct_in_words(words, r, nw, lo, u_lo, u_hi, span, big, theta)
             prefix_counts(words, r, nw, prefix)
-            for i in range(nb):
-                before[i] = count_range(words, r, lo, prefix, lo, bounds[i])
-            for j in range(n_win):
+            j0 = 0
+            if every or active[y, x]:
+                ub[y, x] = distinct_in_words(words, r, nw, lo, u_lo, u_hi, span, big, theta)
+                daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs)
+                for i in range(nb):
+                    before[i] = count_range(words, r, lo, prefix, lo, bounds[i])
+            else:  # a static tile: the spans at t alone
+                ub[y, x] = 0
+                daisi[y, x] = 0.0
+                j0 = max(0, n_win - 2)
+                for j in range(j0, n_win):
+                    before[ia[j]] = count_range(words, r, lo, prefix, lo, bounds[ia[j]])
+                    before[ib[j]] = count_range(words, r, lo, prefix, lo, bounds[ib[j]])
+            for j in range(j0, n_win):
                 cnt = before[ib[j]] - before[ia[j]]
                 if isi_est[j] and cnt >= 2:
                     sa = bounds[ia[j]]
@@ -509,11 +537,12 @@ def _static_kernel(src, union, spans, dai, ub, tfp, daisi, kept):
                     tfp[j, y, x] = np.float32(1.0 / iv)
                 else:
                     tfp[j, y, x] = np.float32(cnt / lens[j])
-            daisi[y, x] = _daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs)
+            for j in range(j0):  # a static tile's history: its MOG frame at t
+                tfp[j, y, x] = tfp[j0, y, x]
 
 
 @njit(parallel=True, cache=True)
-def _dynamic_kernel(src, wins, kept, ub, counts, isi):  # pragma: no cover - numba
+def _dynamic_kernel(src, wins, kept, ub, counts, isi, active):  # pragma: no cover - numba
     """Second pass, run only when some pixel was not proven static: the TFI interval at
     every history step (the ATSR scale of Eq. 7 needs it on the static region too) and,
     where ``ub >= theta``, each history window's distinct-ISI count (Eq. 5) by a walk that
@@ -521,20 +550,24 @@ def _dynamic_kernel(src, wins, kept, ub, counts, isi):  # pragma: no cover - num
     reaches it within a few words); elsewhere ``counts`` is ``ub``, below ``theta`` like
     every window's own count. ``src`` (:class:`~cfsr._words.Words`) gives the steps, ``wins``
     (:class:`_Windows`) the windows. Reads the first pass's words (``kept``,
-    :class:`~cfsr._words.Stored`) when it holds one row per image row; otherwise gathers them."""
+    :class:`~cfsr._words.Stored`) when it holds one row per image row; otherwise gathers them.
+    Where ``active`` (bool ``(H, W)``, or empty: every pixel) is False, only the TFI interval at
+    the last step (t) is computed (``ub`` is 0 there)."""
     packed, geo, lo, hi = src
     ends, span, theta, m = wins
     store, bases = kept
     n = packed.shape[0]
     h, w = ub.shape
     k_count = ends.shape[0]
+    every = active.shape[0] == 0
     nw = n_words(lo, hi)
     for y in prange(h):
         big = long_isi_buffer(lo, hi)
         words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
         for x in range(w):
             r = base + step * x
-            for k in range(k_count):
+            k_first = 0 if every or active[y, x] else k_count - 1
+            for k in range(k_first, k_count):
                 e = ends[k]
                 e_lo, e_hi = search_range(e, m, n)
                 isi[k, y, x] = isi_in_words(words, r, lo, e, e_lo, e_hi)
@@ -561,13 +594,21 @@ def _scratch(shape: tuple[int, ...]) -> np.ndarray:
     return buf
 
 
-def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, Any]:
+def _history(
+    src: PackedWindow, center: int, p: Mapping[str, Any], active: np.ndarray | None = None
+) -> dict[str, Any]:
     """The whole-frame scan: the CSR history of MOG, DAISI at t, TFI and TFP at t.
 
     The same numbers as ``csr_frames`` (history frames' static TFP over ``mog_window`` steps),
     ``daisi_strength``, ``tfi_rate`` and ``tfp_rate`` on the window. A first pass proves the
     static pixels static and gathers what a static window needs; the second (TFI at every
     history step, coarse masks) runs only when some pixel is not proven static.
+
+    Outside ``active`` (bool ``(H, W)``; None: every pixel), tiles the static gate passes
+    (:func:`cfsr.methods.staticgate.active_tiles`), a pixel is static without a proof: its
+    history frames are its MOG frame at t, its DAISI is 0, and the ATSR scale of each history
+    frame before t is summed over the active pixels' static region (the frame at t's over the
+    whole static region, as without tiles: its rates set MOG's gain).
     """
     n, h, w = src.n, src.h, src.w
     ks = range(p["mog_frames"] - 1, -1, -1)
@@ -600,6 +641,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
     isi_win = np.zeros(k + 1, np.bool_)
     isi_win[:k] = p.get("mog_estimator", "tfp") == "isi"
     isi_win[k] = span_estimator(p) == "isi"
+    every = np.empty((0, 0), np.bool_)  # the kernels' "no tile gate": every pixel active
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
@@ -621,6 +663,7 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
         tfps,
         daisi,
         Stored(store, bases),
+        every if active is None else active,
     )
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
@@ -641,10 +684,13 @@ def _history(src: PackedWindow, center: int, p: Mapping[str, Any]) -> dict[str, 
         ub,
         counts,
         isi,
+        every if active is None else active,
     )
     masks = counts >= theta
     # TFI where a frame has dynamic pixels, its clipped TFP elsewhere (as csr_frames)
-    rates = atsr_fuse_isi(isi, tfps[:k], masks)
+    rates = atsr_fuse_isi(isi, tfps[:k], masks, counted=active)
+    if active is not None:  # static tiles: their (exact) MOG frame at t throughout
+        np.copyto(rates[:-1], rates[-1], where=~active)
     tfi = (1.0 / isi[-1]).astype(np.float32)
     return {
         "words": (store, bases, lo, hi),
@@ -668,6 +714,7 @@ def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
         np.zeros((src.h, src.w), np.int32),
         np.empty_like(isi),
         isi,
+        np.empty((0, 0), np.bool_),
     )
     return (1.0 / isi[0]).astype(np.float32)
 
@@ -701,8 +748,16 @@ def fine_stage(
             tfp = counts / np.float32(max(1, pb - pa))
         none = np.zeros((h, w), bool)
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), {"coarse": none, "fine": none.copy()}
+    # the gate per tile: tiles whose counts (and their neighbours') did not change are static
+    active = None
+    if adaptive and int(p.get("static_tile", 0)) > 0:
+        active = active_tiles(
+            src, pb, p["static_window"], p["static_tol"], int(p["static_tile"])
+        )
+        if active is not None and active.all():
+            active = None
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
-    hs = _history(src, center, p)
+    hs = _history(src, center, p, active)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
     tfi_at_t = hs["tfi"]
     sharp = None  # Eq. 9's f under mog_sides = both (_Sharp)
@@ -712,7 +767,7 @@ def fine_stage(
         q = p
         if two_sided(p):  # CFSR has no dynamic estimator of its own: the span rule at t
             q = {**p, "dynamic_estimator": "steady", "dynamic_span": int(p["mog_span"])}
-        st = steady_parts(src, center, q, words=hs["words"], static=False)
+        st = steady_parts(src, center, q, words=hs["words"], static=False, active=active)
         coarse = coarse if st.mask is None else st.mask
         tfp = static_checked(tfp, st.isi, st.noise, p)
         tfi_t = (1.0 / st.isi).astype(np.float32)  # the same numbers as _tfi_at

@@ -313,11 +313,18 @@ class Steady:
 
 
 def steady_parts(
-    src: PackedWindow, center: int, p: Mapping[str, Any], *, words=None, static: bool = True
+    src: PackedWindow,
+    center: int,
+    p: Mapping[str, Any],
+    *,
+    words=None,
+    static: bool = True,
+    active: np.ndarray | None = None,
 ) -> Steady:
     """One read of every pixel's words around t (:func:`cfsr.methods.steady.steadiness`):
     the steady coarse mask, the TFI interval at t, the noise level and the span rules the
-    parameters ask for (``static=False``: the caller has the static span rule already)."""
+    parameters ask for (``static=False``: the caller has the static span rule already;
+    ``active``: the pixels outside static tiles, the others' spread taken as 0)."""
     n = src.n
     spans = []
     want_static = static and span_estimator(p) == "isi"
@@ -333,6 +340,7 @@ def steady_parts(
         max_isi=p["max_isi"],
         spans=tuple(spans),
         words=words,
+        active=active,
     )
     noise = noise_level(spread)
     mask = None

@@ -31,7 +31,7 @@ from cfsr._packed import CHUNK, LANES, count_packed, stored_view, upright
 from cfsr._words import PackedWindow
 from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
 
-__all__ = ["span_counts", "span_isi_rate", "static_gate"]
+__all__ = ["active_tiles", "span_counts", "span_isi_rate", "static_gate"]
 
 
 def _stored(src: PackedWindow, flat: np.ndarray) -> np.ndarray:
@@ -72,7 +72,7 @@ def span_isi_rate(
 
 
 @njit(parallel=True, cache=True)
-def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed):
+def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed, changes):
     # pragma: no cover - numba
     """Spikes of every stored pixel in ``[a + window, a + 2 * window)`` into ``recent`` and,
     against ``[a, a + window)``, ``failed[0] = 1`` once some image pixel's two counts differ
@@ -80,11 +80,14 @@ def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed):
     (512 stored pixels, one cache line of every frame, SWAR lane counts as
     :func:`cfsr._packed.count_packed`) are taken in ``order`` (:func:`_probe_order`).
     ``raster = (stored width, height, width)``: stored pixel ``p`` is an image pixel when
-    ``p // sw < height`` and ``p % sw < width`` (head columns at the right of every row)."""
+    ``p // sw < height`` and ``p % sw < width`` (head columns at the right of every row).
+    A non-empty ``changes`` (uint8, one per stored pixel) takes every pixel's verdict
+    (``|change| > tol``) and keeps the kernel going to the last chunk."""
     nb = packed.shape[1]
     sw, height, width = raster
+    every = changes.shape[0] > 0
     for i in prange(order.shape[0]):
-        if failed[0]:
+        if failed[0] and not every:
             continue
         b0 = order[i] * CHUNK
         m = min(nb, b0 + CHUNK) - b0
@@ -115,7 +118,10 @@ def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed):
         changed = False
         for q in range(m * 8):
             recent[p0 + q] = new[q]
-            if abs(new[q] - old[q]) > tol:
+            moved = abs(new[q] - old[q]) > tol
+            if every:
+                changes[p0 + q] = moved
+            if moved:
                 pix = p0 + q
                 changed |= pix // sw < height and pix % sw < width
         if changed:
@@ -141,10 +147,20 @@ def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarra
     """
     if tol < 0 or window < 1 or end - 2 * window < 0 or end > src.n:
         return None
+    recent, failed, _ = _gate(src, end, window, tol, every=False)
+    # head columns (right of every stored row) are not pixels: only the image's counts
+    return None if failed else _upright(src, _stored(src, recent))
+
+
+def _gate(src: PackedWindow, end: int, window: int, tol: int, *, every: bool):
+    """:func:`_gate_kernel` on ``src``: ``(recent counts, failed, changes)`` per stored pixel;
+    ``every`` visits every chunk in memory order and fills ``changes`` (else chunks in
+    :func:`_probe_order`, stopping at the first changed one, and ``changes`` empty)."""
     nb = src.packed.shape[1]
     nchunks = (nb + CHUNK - 1) // CHUNK
     recent = np.zeros(nb * 8, np.int64)
     failed = np.zeros(1, np.int64)
+    changes = np.zeros(nb * 8 if every else 0, np.uint8)
     _gate_kernel(
         np.ascontiguousarray(src.packed, dtype=np.uint8),
         end - 2 * window,
@@ -152,12 +168,40 @@ def static_gate(src: PackedWindow, end: int, window: int, tol: int) -> np.ndarra
         LANES,
         (int(src.geo[0]), src.h, src.w),
         int(tol),
-        _probe_order(nchunks),
+        np.arange(nchunks, dtype=np.int64) if every else _probe_order(nchunks),
         recent,
         failed,
+        changes,
     )
-    # head columns (right of every stored row) are not pixels: only the image's counts
-    return None if failed[0] else _upright(src, _stored(src, recent))
+    return recent, bool(failed[0]), changes
+
+
+def active_tiles(
+    src: PackedWindow, end: int, window: int, tol: int, tile: int, margin: int = 1
+) -> np.ndarray | None:
+    """The static gate per tile: pixels of the ``tile`` x ``tile`` tiles (image grid from the
+    top-left corner) within ``margin`` tiles of one holding a pixel whose counts over the two
+    spans of :func:`static_gate` differ by more than ``tol`` spikes, bool ``(H, W)``; None when
+    the two spans do not fit in ``[0, end)`` or ``tol < 0`` (every pixel is then active).
+
+    A tile outside this mask passes the gate's test on its own and next to tiles that pass it
+    too, which is what the whole-frame gate asks of every pixel before it outputs a window as
+    static (module notes: what a passing count test can still hide)."""
+    if tol < 0 or window < 1 or tile < 1 or end - 2 * window < 0 or end > src.n:
+        return None
+    _, _, changes = _gate(src, end, window, tol, every=True)
+    moved = _upright(src, _stored(src, changes), np.bool_)
+    h, w = moved.shape
+    th, tw = -(-h // tile), -(-w // tile)
+    grid = np.zeros((th * tile, tw * tile), bool)
+    grid[:h, :w] = moved
+    tiles = grid.reshape(th, tile, tw, tile).any(axis=(1, 3))
+    grown = np.zeros((th + 2 * margin, tw + 2 * margin), bool)
+    for dy in range(2 * margin + 1):  # the tiles within margin: a square dilation
+        for dx in range(2 * margin + 1):
+            grown[dy : dy + th, dx : dx + tw] |= tiles
+    near = grown[margin : margin + th, margin : margin + tw]
+    return np.repeat(np.repeat(near, tile, axis=0), tile, axis=1)[:h, :w]
 
 
 def _probe_order(n: int, every: int = 8) -> np.ndarray:

@@ -42,6 +42,7 @@ from cfsr._words import (
     Stored,
     Words,
     count_between,
+    isi_in_words,
     next_spike,
     prev_spike,
     range_times,
@@ -132,7 +133,7 @@ class _Around(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _steady_kernel(src, kept, at, spans, spread, isi, rates):  # pragma: no cover - numba
+def _steady_kernel(src, kept, at, spans, spread, isi, rates, active):  # pragma: no cover - numba
     # the spread searches the TFI's range whatever range the words cover, so its open-ended
     # intervals do not depend on who gathered the words
     """Per pixel from its words of ``[src.lo, src.hi)`` (:class:`~cfsr._words.Words`):
@@ -141,20 +142,28 @@ def _steady_kernel(src, kept, at, spans, spread, isi, rates):  # pragma: no cove
     (:func:`cfsr.methods.tfp.span_rate`; the TFI at ``c`` below two spikes:
     :func:`cfsr.methods.tfp.static_rate`'s rule). Reads the words ``kept``
     (:class:`~cfsr._words.Stored`) when they hold one row per image row, as CFSR's history scan
-    leaves them; otherwise gathers them."""
+    leaves them; otherwise gathers them. Where ``active`` (bool ``(H, W)``; empty: every
+    pixel) is False the spread is 0 (a static tile), except on the pixels
+    :func:`noise_level` samples (:func:`noise_step`), so the noise level stays the same."""
     packed, geo, lo, hi = src
     store, bases = kept
     n, c, radius, m = at
     h, w = spread.shape
+    every = active.shape[0] == 0
+    grid = noise_step(h * w)
     a = max(0, c - m)
     b = min(n, c + m + 1)
     k_spans = spans.shape[0]
     for y in prange(h):
         loc = np.empty(2 * radius + 2, np.int64)
         words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
+        sampled = y % grid == 0
         for x in range(w):
             r = base + step * x
-            sp, iv = interval_stats(words, r, lo, c, radius, a, b, loc)
+            if every or active[y, x] or (sampled and x % grid == 0):
+                sp, iv = interval_stats(words, r, lo, c, radius, a, b, loc)
+            else:
+                sp, iv = 0.0, isi_in_words(words, r, lo, c, a, b)
             isi[y, x] = iv
             spread[y, x] = np.float32(sp)
             for j in range(k_spans):
@@ -167,6 +176,14 @@ def _steady_kernel(src, kept, at, spans, spread, isi, rates):  # pragma: no cove
                     rates[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
                 else:
                     rates[j, y, x] = np.float32(1.0 / iv)
+
+
+@njit(cache=True)
+def noise_step(size):  # pragma: no cover - numba
+    """Every how many rows and columns :func:`noise_level` samples a frame of ``size``
+    pixels: 2 above 4 x 4096 (the median of a quarter of a camera frame is as good, at a
+    quarter of the cost), else 1."""
+    return 2 if size > 4 * 4096 else 1
 
 
 #: Stored words of a whole window (CFSR's history scan): ``(store, bases, lo, hi)``.
@@ -187,6 +204,7 @@ def steadiness(
     max_isi: int,
     spans: tuple[tuple[int, int], ...] = (),
     words: StoredWords | None = None,
+    active: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pixel, the interval spread around ``center``, the TFI interval at it, and the
     ``isi`` span rates of ``spans``, from one read of each pixel's spike words.
@@ -208,6 +226,9 @@ def steadiness(
     words : (store, bases, lo, hi), optional
         Words already gathered for the whole frame (CFSR's history scan), covering
         :func:`steady_range`; None gathers them here.
+    active : ndarray (H, W) bool, optional
+        Pixels whose spread is computed (None: all); elsewhere it is 0 (static tiles, see
+        :func:`cfsr.methods.staticgate.active_tiles`), except on :func:`noise_level`'s sample.
 
     Returns
     -------
@@ -238,6 +259,7 @@ def steadiness(
     _steady_kernel(
         Words(src.packed, src.geo, int(lo), int(hi)), Stored(store, bases),
         _Around(n, c, radius, m), sp, spread, isi, rates,
+        np.empty((0, 0), np.bool_) if active is None else np.ascontiguousarray(active, np.bool_),
     )
     return spread, isi, rates
 
@@ -250,8 +272,9 @@ def noise_level(spread: np.ndarray, *, clip: float = 3.0, rounds: int = 3) -> fl
     moves it still errs high (the masks then err static).
     """
     s = np.asarray(spread, np.float32)
-    if s.ndim == 2 and s.size > 4 * 4096:  # every other row and column: the median of a
-        s = s[::2, ::2]  # quarter of a camera frame is as good, at a quarter of the cost
+    if s.ndim == 2:  # every other row and column of a camera frame (noise_step)
+        k = noise_step(s.size)
+        s = s[::k, ::k]
     s = s.ravel()
     s = s[np.isfinite(s)]
     v = float(np.median(s)) if s.size else 0.0
