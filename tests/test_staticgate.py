@@ -178,6 +178,7 @@ def test_the_gate_per_tile_marks_a_changed_tile_and_its_neighbours(flipud, flipl
     s[quiet, y, x] = 1
     src = PackedWindow.from_packed(pack_frames(s, flipud=flipud, fliplr=fliplr), lay)
     got = active_tiles(src, 340, 160, 1, 16)
+    assert got.flags.c_contiguous  # a width of 100 px is not a whole number of tiles
     want = np.zeros((70, 100), bool)
     want[16:64, 32:80] = True  # tile rows 1-3, tile columns 2-4
     np.testing.assert_array_equal(got, want)

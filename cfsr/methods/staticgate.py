@@ -201,7 +201,8 @@ def active_tiles(
         for dx in range(2 * margin + 1):
             grown[dy : dy + th, dx : dx + tw] |= tiles
     near = grown[margin : margin + th, margin : margin + tw]
-    return np.repeat(np.repeat(near, tile, axis=0), tile, axis=1)[:h, :w]
+    # C-contiguous (one kernel specialisation for every frame width)
+    return np.ascontiguousarray(np.repeat(np.repeat(near, tile, axis=0), tile, axis=1)[:h, :w])
 
 
 def _probe_order(n: int, every: int = 8) -> np.ndarray:
