@@ -115,7 +115,7 @@ def _variant(r: dict[str, Any]) -> str:
         return "cfsr always-full"
     if not r["static_gate"]:
         return "cfsr adaptive, gate off"
-    return "cfsr adaptive" if r.get("tile_gate", True) else "cfsr adaptive, tiles off"
+    return "cfsr adaptive" if r["tile_gate"] else "cfsr adaptive, tiles off"
 
 
 def print_sweep(res: dict[str, Any]) -> None:

@@ -914,6 +914,16 @@ class _Sharp(NamedTuple):
         return to_u8(r, gain)
 
 
+def _mog_settings(p: Mapping[str, Any], hist: int) -> dict[str, Any]:
+    """:func:`cfsr.methods.mog.mog_background`'s settings from the parameters (both MOGs)."""
+    return {
+        "history": hist,
+        "nmixtures": p["mog_mixtures"],
+        "background_ratio": p["mog_ratio"],
+        "noise_sigma": p["mog_noise"],
+    }
+
+
 def _mog_objects(
     u8: np.ndarray,
     phi0: float,
@@ -940,12 +950,7 @@ def _mog_objects(
     varies = None
     if adaptive or sharp is not None:
         varies = (u8.max(axis=0).astype(np.int16) - u8.min(axis=0)) >= phi0
-    settings = {
-        "history": hist,
-        "nmixtures": p["mog_mixtures"],
-        "background_ratio": p["mog_ratio"],
-        "noise_sigma": p["mog_noise"],
-    }
+    settings = _mog_settings(p, hist)
     if not adaptive:
         _, background = mog_background(u8, **settings)
         f = u8[-1] if sharp is None else sharp.u8((0, h, 0, w), gain)
@@ -1055,13 +1060,7 @@ def _future_objects(
         np.zeros((len(starts), y1 - y0, x1 - x0), np.int32),
     )
     frames = to_u8(counts[:, sel].astype(np.float32) / np.float32(win), gain)
-    _, background = mog_background(
-        frames[:, None, :],
-        history=hist,
-        nmixtures=p["mog_mixtures"],
-        background_ratio=p["mog_ratio"],
-        noise_sigma=p["mog_noise"],
-    )
+    _, background = mog_background(frames[:, None, :], **_mog_settings(p, hist))
     keep = np.zeros_like(cand)
     keep[y0:y1, x0:x1][sel] = mog_objects(sharp.u8(box, gain)[sel], background[0], match)
     return keep

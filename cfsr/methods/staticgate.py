@@ -29,6 +29,7 @@ from numba import njit, prange
 
 from cfsr._packed import CHUNK, LANES, count_packed, stored_view, upright
 from cfsr._words import PackedWindow
+from cfsr.methods.pmframes import pm_tiles
 from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
 
 __all__ = ["active_tiles", "span_counts", "span_isi_rate", "static_gate"]
@@ -192,15 +193,7 @@ def active_tiles(
     _, _, changes = _gate(src, end, window, tol, every=True)
     moved = _upright(src, _stored(src, changes), np.bool_)
     h, w = moved.shape
-    th, tw = -(-h // tile), -(-w // tile)
-    grid = np.zeros((th * tile, tw * tile), bool)
-    grid[:h, :w] = moved
-    tiles = grid.reshape(th, tile, tw, tile).any(axis=(1, 3))
-    grown = np.zeros((th + 2 * margin, tw + 2 * margin), bool)
-    for dy in range(2 * margin + 1):  # the tiles within margin: a square dilation
-        for dx in range(2 * margin + 1):
-            grown[dy : dy + th, dx : dx + tw] |= tiles
-    near = grown[margin : margin + th, margin : margin + tw]
+    near = pm_tiles(moved, margin * tile, tile)  # the tiles within margin of a changed one
     # C-contiguous (one kernel specialisation for every frame width)
     return np.ascontiguousarray(np.repeat(np.repeat(near, tile, axis=0), tile, axis=1)[:h, :w])
 
