@@ -180,3 +180,43 @@ def test_the_temporal_search_reads_padded_guides_as_it_reads_its_own_copy():
             np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="padded guides"):
         nnf_temporal(frames[0], frames[1:], mask, steps, patch=6, padded=buf[:, :-1])
+
+
+@pytest.mark.parametrize(("patch", "temporal"), [(6, True), (3, True), (6, False)])
+def test_a_patch_that_reads_nan_is_never_a_match(patch, temporal):
+    # CFSR computes guides only on the tiles near the fine mask and leaves NaN elsewhere
+    # (pm_frames): a NaN SSD must lose to every finite one, so no match reads the NaN area
+    steps = _steps(count=6)
+    ref, tg = _moving(steps, v=(0.0, 1 / 3))  # content at x sits at x + s/3 at step s
+    tg = tg.copy()
+    tg[:, :, 86:] = np.nan
+    mask = np.zeros(ref.shape, bool)
+    mask[30:60, 40:80] = True
+    kw = {"offsets_steps": steps} if temporal else {}
+    ys, xs, off, cost = nnf_multi(ref, tg, mask, patch=patch, iters=2, max_radius=8, seed=3, **kw)
+    assert not np.isnan(cost).any()  # a match has a finite cost, no match an infinite one
+    found = np.isfinite(cost)
+    assert found.mean() > 0.95
+    lo = (patch - 1) // 2
+    h, w = ref.shape
+    for k, s in enumerate(steps):
+        ty = np.clip(ys + off[k, :, 0], 0, h - 1)
+        tx = np.clip(xs + off[k, :, 1], 0, w - 1)
+        for j in np.flatnonzero(found[k])[::7]:  # the matched patch holds no NaN
+            win = tg[
+                k, max(0, ty[j] - lo) : ty[j] - lo + patch, max(0, tx[j] - lo) : tx[j] - lo + patch
+            ]
+            assert np.isfinite(win).all(), (s, ys[j], xs[j])
+        if temporal and patch == 6:  # where the true match is clear of the NaN, it is found
+            clear = xs + round(s / 3) + patch - lo <= 86
+            want = (off[k, :, 0] == 0) & (off[k, :, 1] == round(s / 3))
+            assert want[clear].mean() > 0.99, (s, want[clear].mean())
+    fused = patchmatch_fuse(
+        ref, ref, tg, tg, mask, patch=patch, iters=2, max_radius=8, seed=3, **kw
+    )
+    # the average of the reference and the targets that have a match
+    ty = np.clip(ys + off[..., 0], 0, h - 1)
+    tx = np.clip(xs + off[..., 1], 0, w - 1)
+    vals = np.where(found, tg[np.arange(len(steps))[:, None], ty, tx], 0.0)
+    want = (ref[ys, xs] + vals.sum(axis=0)) / (1 + found.sum(axis=0))
+    np.testing.assert_allclose(fused[ys, xs], want, rtol=1e-5)

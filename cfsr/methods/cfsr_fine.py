@@ -31,10 +31,11 @@ the calibration of every default are in docs/methods.md):
    PatchMatch still works on the mask before this step, and the still pixels left out take
    their run's rate.
 5. **Fine reconstruction** (:mod:`cfsr.methods.patchmatch`): TFI at t and at ``t +- pm_step*i``,
-   ``i = 1..pm_count`` (clipped to the window), computed only on the 16 x 16 tiles within the
-   search margin of a fine-mask pixel; PatchMatch on a guide (TFA over ``pm_guide``
-   intervals, Gaussian ``pm_sigma``) matches the 6 x 6 patch of every fine-mask pixel in each
-   frame, and the raw TFI rates at the matches are averaged with the reference.
+   ``i = 1..pm_count`` (clipped to the window), computed only on the 8 x 8 tiles within reach
+   of a fine-mask pixel's own patch and one tile more (the rest hold NaN: never matched);
+   PatchMatch on a guide (TFA over ``pm_guide`` intervals, Gaussian ``pm_sigma``) matches the
+   6 x 6 patch of every fine-mask pixel in each frame, and the raw TFI rates at the matches
+   are averaged with the reference.
 6. **ATSR** (:mod:`cfsr.methods.atsr`, Eq. 7): the refined dynamic region is fused with the
    static TFP (``tfp_window``) scaled by mean TFI / mean TFP over the static region.
 
@@ -47,7 +48,7 @@ the history scan proves most
 pixels static in one walk of their spikes, and runs its second pass (TFI at every history step,
 coarse masks) only when some pixel is not proven static; an empty fine mask skips the TFI frames
 and PatchMatch entirely (the output is then the plain TFP); MOG runs only where the 8-bit
-history varies by phi0 or more; tiles without a fine-mask pixel within the search margin get no
+history varies by phi0 or more; tiles without a fine-mask pixel within its patch's reach get no
 TFI frames and no guides, and PatchMatch works only on the fine mask's pixels.
 ``adaptive=False`` is the always-full pipeline (every stage on the whole frame, same output
 rule) that the benchmark compares with.
@@ -101,7 +102,7 @@ from cfsr.methods.distinction import distinct_in_words, long_isi_buffer
 from cfsr.methods.masks import fine_mask
 from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import finish_padding, padded_guides, patchmatch_fuse
-from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
+from cfsr.methods.pmframes import TILE, match_reach, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
 from cfsr.methods.staticgate import active_tiles, span_counts, span_isi_rate, static_gate
 from cfsr.methods.steady import steady_range
@@ -207,8 +208,7 @@ FINE_PARAMS: dict[str, Param] = {
     "still_run": Param(
         64,
         "steps",
-        "still pixels: shortest stretch of exact constant rate, at t and where the rate "
-        "returns",
+        "still pixels: shortest stretch of exact constant rate, at t and where the rate returns",
         minimum=2,
         maximum=MAX_WINDOW_STEPS // 2,
     ),
@@ -726,7 +726,7 @@ def fine_stage(
 
     ``p["adaptive"]`` (default True) skips what the scene does not need: counts unchanged
     over the last two ``static_window`` spans (the static gate) or no fine-mask pixel ->
-    the plain TFP; otherwise TFI frames and guides only on the tiles within the search margin
+    the plain TFP; otherwise TFI frames and guides only on the tiles within a patch's reach
     of a fine-mask pixel (:func:`pm_tiles`) and PatchMatch only on the fine-mask pixels.
     ``adaptive=False`` is the always-full pipeline: MOG on the whole frame, TFI frames, guides
     and PatchMatch on every pixel, then the same output rule (TFP where the fine mask is empty,
@@ -751,9 +751,7 @@ def fine_stage(
     # the gate per tile: tiles whose counts (and their neighbours') did not change are static
     active = None
     if adaptive and int(p.get("static_tile", 0)) > 0:
-        active = active_tiles(
-            src, pb, p["static_window"], p["static_tol"], int(p["static_tile"])
-        )
+        active = active_tiles(src, pb, p["static_window"], p["static_tol"], int(p["static_tile"]))
         if active is not None and active.all():
             active = None
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
@@ -776,6 +774,7 @@ def fine_stage(
 
         def tfi_at_t():
             return tfi_t
+
     # 2. MOG background and moving objects (Eq. 8-9)
     gain = p["mog_gain"]
     if gain <= 0:
@@ -802,6 +801,7 @@ def fine_stage(
             objects = (objects & coarse) | keep
     # 3. DAISI edges (Eq. 10-14)
     edges = hs["daisi"] >= p["phi"]
+
     # 4. fine mask
     def cues(still: np.ndarray | None = None) -> np.ndarray:
         return fine_mask(
@@ -843,11 +843,14 @@ def fine_stage(
         region = region | ghosts
     if adaptive and not region.any():
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
-    # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles it can
-    # read, within the search margin of a fine-mask pixel)
+    # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
+    # patch's reach of a fine-mask pixel)
     if adaptive:
-        margin = p["pm_radius"] + p["pm_patch"] + int(3 * p["pm_sigma"]) + 1
-        tiles = pm_tiles(region, margin)
+        # a match reaching beyond the computed tiles reads NaN and is never taken (pm_frames);
+        # one tile more than a pixel's own patch reads at zero motion leaves room for the
+        # motion (with none, the blades' moving pixels lost 0.11 dB; docs/methods.md)
+        reach = match_reach(int(p["pm_patch"]), float(p["pm_sigma"])) + TILE
+        tiles = pm_tiles(region, reach)
         ty, tx = np.nonzero(tiles)
         y0, y1 = ty.min() * TILE, min(h, (ty.max() + 1) * TILE)
         x0, x1 = tx.min() * TILE, min(w, (tx.max() + 1) * TILE)

@@ -834,6 +834,8 @@ def _fuse_kernel(ref_raw, raw, ys, xs, off, cost, scale, out):  # pragma: no cov
             acc[j - j0] = ref_raw[ys[j], xs[j]]
         for i in range(n_t):
             for j in range(j0, j1):
+                if not cost[i, j] < np.inf:
+                    continue  # no match: every candidate read NaN guides (fuse_matches)
                 y = ys[j]
                 x = xs[j]
                 wt = 1.0 if scale <= 0.0 else np.exp(-cost[i, j] / scale)
@@ -853,7 +855,9 @@ def fuse_matches(
 
     ``matches`` is ``(ys, xs, offsets, cost)``, the result of :func:`nnf_multi`. Weights are
     ``exp(-SSD / (patch**2 * h**2))`` (non-local-means form); ``h <= 0`` gives the plain
-    average of the paper. Returns float32 ``(M,)`` in the units of ``raw``.
+    average of the paper. A target whose cost is infinite has no match for the pixel (every
+    patch its search tried read NaN guides: CFSR leaves NaN where it computed none) and adds
+    nothing. Returns float32 ``(M,)`` in the units of ``raw``.
     """
     ys, xs, offsets, cost = matches
     out = np.empty(ys.size, np.float32)

@@ -4,8 +4,8 @@ CFSR's fine reconstruction (:mod:`cfsr.methods.cfsr_fine`, paper Eq. 3 and the f
 matches every fine-mask pixel in the TFI frames at ``t +- pm_step * i``; the matching reads
 guides (TFA over ``pm_guide`` intervals, Gaussian-smoothed) and averages raw TFI rates. Both
 are computed here, by one scan per pixel of the packed window (spike words,
-:mod:`cfsr._words`), and only on the 16 x 16 tiles within the search margin of a fine-mask
-pixel (:func:`pm_tiles`): tiles PatchMatch cannot read are skipped.
+:mod:`cfsr._words`), and only on the 8 x 8 tiles within :func:`match_reach` of a fine-mask
+pixel (:func:`pm_tiles`); the other tiles hold NaN, which PatchMatch never matches.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from cfsr._words import (
 )
 from cfsr.methods.tfa import grow_span
 
-__all__ = ["TILE", "pm_tiles", "pm_frames", "isi_from_times"]
+__all__ = ["TILE", "match_reach", "pm_tiles", "pm_frames", "isi_from_times"]
 
 # spike words: one bit per step, 64 steps per uint64 word (step s of the span is bit s & 63 of
 # word s >> 6)
@@ -196,15 +196,27 @@ def _pm_kernel(span, centers_, region, raw, tfa):
                     tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
 
 
-#: Side (pixels) of the tiles the fine stage skips or works on.
-TILE = 16
+#: Side (pixels) of the tiles the fine stage skips or works on. 8 rather than 16: the tiles
+#: within :func:`match_reach` of the fine mask then cover 0.53-0.65x the pixels on disk, fan
+#: and car (docs/methods.md, "Guides where matches can land").
+TILE = 8
+
+
+def match_reach(patch: int, sigma: float) -> int:
+    """Pixels around a pixel whose TFA its own patch reads in the guides: the patch's far
+    side (rows and columns ``-(patch - 1) // 2 .. patch // 2``, as
+    :mod:`cfsr.methods.patchmatch` lays it out) plus the radius of the guide's Gaussian
+    (OpenCV's kernel for float images reaches ``round(4 sigma)`` pixels; ``ceil`` here)."""
+    blur = int(np.ceil(4.0 * sigma)) if sigma > 0 else 0
+    return patch - 1 - (patch - 1) // 2 + blur
 
 
 def pm_tiles(fine: np.ndarray, margin: int, tile: int = TILE) -> np.ndarray:
-    """Tiles (bool ``(ceil(H/tile), ceil(W/tile))``) that PatchMatch can read: those within
-    ``margin`` pixels (rounded up to whole tiles) of a tile holding a fine-mask pixel.
+    """Tiles (bool ``(ceil(H/tile), ceil(W/tile))``) within ``margin`` pixels (rounded up to
+    whole tiles) of a tile holding a fine-mask pixel.
 
-    Every other tile is skipped by the fine stage: no TFI frames, no guides, no matching.
+    The fine stage computes frames and guides on these tiles only (margin
+    :func:`match_reach`: every fine pixel's own patch reads computed guides).
     """
     h, w = fine.shape
     th, tw = -(-h // tile), -(-w // tile)
@@ -256,13 +268,17 @@ def pm_frames(
     scenes (a fixed-window TFP guide is mostly 0 or 1/w in low light). The same numbers as
     ``tfi_rates`` and ``adaptive_rates`` on the crop. ``tiles`` (full-frame grid of
     :data:`TILE`-pixel tiles, see :func:`pm_tiles`): only the tiles marked are computed, the
-    rest of the box holds rate 1 (never read by PatchMatch). ``guide_out`` (float32
+    rest of the box holds NaN in the rates and in the guides (the blur spreads it up to its
+    radius into the tiles): a patch that reads a NaN has a NaN SSD, which no comparison of
+    :mod:`cfsr.methods.patchmatch` prefers, so every match, and every rate the fusion
+    averages, lies in computed guides. ``guide_out`` (float32
     ``(len(centers), y1 - y0, x1 - x0)``, may be a strided view such as the images of
     :func:`cfsr.methods.patchmatch.padded_guides`): the guides are written there and it is
     returned as the guides.
     """
     n = src.n
     y0, y1, x0, x1 = box
+    partial = tiles is not None and not tiles.all()
     if tiles is None:
         tiles = np.ones((-(-src.h // TILE), -(-src.w // TILE)), bool)
     # tile rows of the box, aligned on the crop's first row
@@ -278,8 +294,9 @@ def pm_frames(
     thr = int(p["pm_guide"])
     # the crop rows with work
     rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
-    raw = np.ones((cs.size, y1 - y0, x1 - x0), np.float32)
-    tfa = np.ones(raw.shape if thr > 0 else (1, 1, 1), np.float32)
+    fill = np.float32(np.nan if partial else 1.0)
+    raw = np.full((cs.size, y1 - y0, x1 - x0), fill, np.float32)
+    tfa = np.full(raw.shape if thr > 0 else (1, 1, 1), fill, np.float32)
     _pm_kernel(
         _Span(src.packed, src.geo, lo, hi),
         _Centers(cs[order], order, m, thr),
