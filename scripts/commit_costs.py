@@ -102,6 +102,11 @@ print(json.dumps(out))
 _IMPORT = re.compile(r"""(\bfrom\s+|\bimport\s+)cfsr\b|(["'])cfsr(?=\.)""")
 
 
+def rename_imports(text: str, name: str) -> str:
+    """``text`` (Python source) with every import of the ``cfsr`` package naming ``name``."""
+    return _IMPORT.sub(lambda m: (m.group(1) or m.group(2)) + name, text)
+
+
 def renamed_copy(rev: str) -> tuple[Path, str]:
     """``rev``'s ``cfsr`` package as ``cfsr_<sha>`` in a folder of its own (kept between runs):
     ``(folder to put on sys.path, package name)``."""
@@ -117,8 +122,7 @@ def renamed_copy(rev: str) -> tuple[Path, str]:
         subprocess.run(["tar", "-x", "-C", str(where)], input=tar, check=True)
         (where / "cfsr").rename(pkg)
         for py in pkg.rglob("*.py"):
-            text = py.read_text()
-            py.write_text(_IMPORT.sub(lambda m: (m.group(1) or m.group(2)) + name, text))
+            py.write_text(rename_imports(py.read_text(), name))
     return where, name
 
 
