@@ -77,11 +77,12 @@ class _Region(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _pm_kernel(span, centers_, region, raw, tfa):
+def _pm_kernel(span, centers_, region, raw, tfa, fill):
     # pragma: no cover - numba
     """TFI rates (``1 / ISI``, float32) and TFA rates at ``centers`` (ascending; written to
     frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the crop rows ``rows`` and, in
-    each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``
+    each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``; the
+    rest of those rows takes ``fill`` (the other rows are the caller's)
     (``span``, ``centers_`` and ``region``: :class:`_Span`, :class:`_Centers`,
     :class:`_Region`; ``m`` is ``max_isi``, ``thr`` the guide's intervals).
 
@@ -194,10 +195,21 @@ def _pm_kernel(span, centers_, region, raw, tfa):
                 raw[slot[kk], yy, xa:xb] = b_raw[kk, xa:xb]
                 if thr > 0:
                     tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
+        # the columns outside the runs (the frames are not pre-filled: one write per value)
+        gap = 0
+        for ri in range(runs_at[tr], runs_at[tr + 1] + 1):
+            end = runs[ri, 0] if ri < runs_at[tr + 1] else cw
+            if end > gap:
+                for kk in range(kc):
+                    raw[kk, yy, gap:end] = fill
+                    if thr > 0:
+                        tfa[kk, yy, gap:end] = fill
+            if ri < runs_at[tr + 1]:
+                gap = runs[ri, 1]
 
 
 #: Side (pixels) of the tiles the fine stage skips or works on. 8 rather than 16: the tiles
-#: within :func:`match_reach` of the fine mask then cover 0.53-0.65x the pixels on disk, fan
+#: within :func:`match_reach` of the fine mask then cover 0.65-0.76x the pixels on disk, fan
 #: and car (docs/methods.md, "Guides where matches can land").
 TILE = 8
 
@@ -295,15 +307,21 @@ def pm_frames(
     # the crop rows with work
     rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
     fill = np.float32(np.nan if partial else 1.0)
-    raw = np.full((cs.size, y1 - y0, x1 - x0), fill, np.float32)
-    tfa = np.full(raw.shape if thr > 0 else (1, 1, 1), fill, np.float32)
+    raw = np.empty((cs.size, y1 - y0, x1 - x0), np.float32)
+    tfa = np.empty(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     _pm_kernel(
         _Span(src.packed, src.geo, lo, hi),
         _Centers(cs[order], order, m, thr),
         _Region(y0, x0, TILE, rows, runs_at, runs),
         raw,
         tfa,
+        fill,
     )
+    idle = np.ones(y1 - y0, bool)
+    idle[rows] = False
+    raw[:, idle] = fill
+    if thr > 0:
+        tfa[:, idle] = fill
     g = raw if thr <= 0 else tfa
     if p["pm_sigma"] <= 0:
         if guide_out is not None:
