@@ -220,3 +220,32 @@ def test_a_patch_that_reads_nan_is_never_a_match(patch, temporal):
     vals = np.where(found, tg[np.arange(len(steps))[:, None], ty, tx], 0.0)
     want = (ref[ys, xs] + vals.sum(axis=0)) / (1 + found.sum(axis=0))
     np.testing.assert_allclose(fused[ys, xs], want, rtol=1e-5)
+
+
+def test_fusion_of_the_wanted_pixels_only_gives_their_full_fusion_values():
+    # CFSR matches the still pixels it leaves out (they carry the propagation) but uses
+    # only the other pixels' averages: those must be the averages of the full fusion
+    from cfsr.methods.patchmatch import fuse_matches
+
+    steps = _steps(count=4)
+    ref, tg = _moving(steps, v=(0.3, -0.2), seed=2)
+    mask = np.zeros(ref.shape, bool)
+    mask[20:70, 30:90] = True
+    matches = nnf_multi(ref, tg, mask, iters=2, max_radius=8, seed=5, offsets_steps=steps)
+    ys, xs = matches[:2]
+    wanted = np.random.default_rng(1).random(ys.size) < 0.5
+    for h in (0.0, 0.05):
+        full = fuse_matches(ref, tg, matches, h=h)
+        part = fuse_matches(ref, tg, matches, h=h, wanted=wanted)
+        np.testing.assert_array_equal(part[wanted], full[wanted])
+        np.testing.assert_array_equal(part[~wanted], ref[ys[~wanted], xs[~wanted]])
+    with pytest.raises(ValueError, match="wanted"):
+        fuse_matches(ref, tg, matches, wanted=wanted[:-1])
+    # patchmatch_fuse takes the same choice as an image
+    img = np.zeros(ref.shape, bool)
+    img[ys[wanted], xs[wanted]] = True
+    kw = {"iters": 2, "max_radius": 8, "seed": 5, "offsets_steps": steps}
+    got = patchmatch_fuse(ref, ref, tg, tg, mask, wanted=img, **kw)
+    want = patchmatch_fuse(ref, ref, tg, tg, mask, **kw)
+    np.testing.assert_array_equal(got[img], want[img])
+    np.testing.assert_array_equal(got[mask & ~img], ref[mask & ~img])

@@ -868,12 +868,16 @@ def fine_stage(
         src, tcs, (int(y0), int(y1), int(x0), int(x1)), p, tiles, guide_out=view
     )
     finish_padding(padded, int(p["pm_patch"]))
+    # the ATSR below reads the refined rates on region & ~left only: the still pixels left out
+    # (and, always-full, the pixels outside the region) are matched but not averaged
+    used = region if left is None else region & ~left
     refined = patchmatch_fuse(
         raw[0],
         guides[0],
         raw[1:],
         guides[1:],
         domain,
+        wanted=used[y0:y1, x0:x1],
         patch=p["pm_patch"],
         iters=p["pm_iters"],
         max_radius=p["pm_radius"],
@@ -891,7 +895,7 @@ def fine_stage(
     crop = dyn[y0:y1, x0:x1]
     crop[domain] = refined[domain]
     # 6. ATSR (Eq. 7)
-    rate, _ = atsr_fuse(dyn, tfp, region if left is None else region & ~left, tfi=tfi_full)
+    rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
     return rate, masks
 
 

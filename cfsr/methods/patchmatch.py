@@ -819,21 +819,23 @@ def nnf_multi(
 
 
 @njit(parallel=True, cache=True)
-def _fuse_kernel(ref_raw, raw, ys, xs, off, cost, scale, out):  # pragma: no cover - numba
-    # chunks of pixels in parallel; inside a chunk target by target (one frame at a time in
-    # cache), each pixel still summing the reference and then the targets in order
+def _fuse_kernel(ref_raw, raw, ys, xs, js, off, cost, scale, out):  # pragma: no cover - numba
+    # the pixels ``js`` (ascending) in chunks in parallel; inside a chunk target by target (one
+    # frame at a time in cache), each pixel still summing the reference and then the targets
+    # in order
     n_t, h, w = raw.shape
-    m = ys.shape[0]
+    m = js.shape[0]
     chunk = _FUSE_CHUNK
     for ch in prange((m + chunk - 1) // chunk):
-        j0 = ch * chunk
-        j1 = min(m, j0 + chunk)
-        acc = np.empty(j1 - j0)
-        wsum = np.ones(j1 - j0)
-        for j in range(j0, j1):
-            acc[j - j0] = ref_raw[ys[j], xs[j]]
+        q0 = ch * chunk
+        q1 = min(m, q0 + chunk)
+        acc = np.empty(q1 - q0)
+        wsum = np.ones(q1 - q0)
+        for q in range(q0, q1):
+            acc[q - q0] = ref_raw[ys[js[q]], xs[js[q]]]
         for i in range(n_t):
-            for j in range(j0, j1):
+            for q in range(q0, q1):
+                j = js[q]
                 if not cost[i, j] < np.inf:
                     continue  # no match: every candidate read NaN guides (fuse_matches)
                 y = ys[j]
@@ -841,15 +843,21 @@ def _fuse_kernel(ref_raw, raw, ys, xs, off, cost, scale, out):  # pragma: no cov
                 wt = 1.0 if scale <= 0.0 else np.exp(-cost[i, j] / scale)
                 ty = _clamp(y + off[i, j, 0], 0, h - 1)
                 tx = _clamp(x + off[i, j, 1], 0, w - 1)
-                acc[j - j0] += wt * raw[i, ty, tx]
-                wsum[j - j0] += wt
-        for j in range(j0, j1):
-            out[j] = acc[j - j0] / wsum[j - j0]
+                acc[q - q0] += wt * raw[i, ty, tx]
+                wsum[q - q0] += wt
+        for q in range(q0, q1):
+            out[js[q]] = acc[q - q0] / wsum[q - q0]
     return out
 
 
 def fuse_matches(
-    ref_raw: np.ndarray, raw: np.ndarray, matches, *, patch: int = PATCH, h: float = 0.0
+    ref_raw: np.ndarray,
+    raw: np.ndarray,
+    matches,
+    *,
+    patch: int = PATCH,
+    h: float = 0.0,
+    wanted: np.ndarray | None = None,
 ) -> np.ndarray:
     """Average the reference value with the matched values of every target at the given pixels.
 
@@ -857,18 +865,30 @@ def fuse_matches(
     ``exp(-SSD / (patch**2 * h**2))`` (non-local-means form); ``h <= 0`` gives the plain
     average of the paper. A target whose cost is infinite has no match for the pixel (every
     patch its search tried read NaN guides: CFSR leaves NaN where it computed none) and adds
-    nothing. Returns float32 ``(M,)`` in the units of ``raw``.
+    nothing. ``wanted`` (bool ``(M,)``): only these pixels are averaged, the others take
+    ``ref_raw`` (CFSR matches pixels whose own value it does not use: they carry the search's
+    propagation). Returns float32 ``(M,)`` in the units of ``raw``.
     """
     ys, xs, offsets, cost = matches
     out = np.empty(ys.size, np.float32)
     if ys.size == 0:
         return out
+    ref_raw = np.ascontiguousarray(ref_raw, dtype=np.float32)
+    if wanted is None:
+        js = np.arange(ys.size, dtype=np.int64)
+    else:
+        wanted = np.asarray(wanted, dtype=bool)
+        if wanted.shape != ys.shape:
+            raise ValueError(f"wanted {wanted.shape} for {ys.size} matched pixels")
+        js = np.flatnonzero(wanted).astype(np.int64)
+        out[~wanted] = ref_raw[ys[~wanted], xs[~wanted]]
     scale = float(patch * patch * h * h) if h > 0 else 0.0
     return _fuse_kernel(
-        np.ascontiguousarray(ref_raw, dtype=np.float32),
+        ref_raw,
         np.ascontiguousarray(raw, dtype=np.float32),
         ys,
         xs,
+        js,
         offsets,
         cost,
         scale,
@@ -885,19 +905,22 @@ def patchmatch_fuse(
     *,
     patch: int = PATCH,
     h: float = 0.0,
+    wanted: np.ndarray | None = None,
     **search,
 ) -> np.ndarray:
     """Refine ``ref_raw`` on ``mask`` by PatchMatch over the target frames.
 
     Matching uses the guides (:func:`nnf_multi` with ``patch`` and the keywords ``search``:
     ``offsets_steps`` picks the schedule); the averaged values are the raw rates
-    (:func:`fuse_matches`, weight scale ``h``). Pixels outside ``mask`` keep ``ref_raw``.
-    Returns float32 ``(H, W)``.
+    (:func:`fuse_matches`, weight scale ``h``). Pixels outside ``mask`` keep ``ref_raw``, and so
+    do those outside ``wanted`` (bool ``(H, W)``, default all): they are matched, and carry
+    the propagation, but not averaged. Returns float32 ``(H, W)``.
     """
     out = np.array(ref_raw, dtype=np.float32, copy=True)
     if raw.shape[0] == 0 or not np.any(mask):
         return out
     matches = nnf_multi(ref_guide, guides, mask, patch=patch, **search)
     ys, xs = matches[:2]
-    out[ys, xs] = fuse_matches(ref_raw, raw, matches, patch=patch, h=h)
+    sel = None if wanted is None else np.asarray(wanted, dtype=bool)[ys, xs]
+    out[ys, xs] = fuse_matches(ref_raw, raw, matches, patch=patch, h=h, wanted=sel)
     return out
