@@ -641,7 +641,8 @@ def _history(
     isi_win = np.zeros(k + 1, np.bool_)
     isi_win[:k] = p.get("mog_estimator", "tfp") == "isi"
     isi_win[k] = span_estimator(p) == "isi"
-    every = np.empty((0, 0), np.bool_)  # the kernels' "no tile gate": every pixel active
+    # the kernels take an empty mask for "no tile gate": every pixel active
+    act = np.empty((0, 0), np.bool_) if active is None else active
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
@@ -663,7 +664,7 @@ def _history(
         tfps,
         daisi,
         Stored(store, bases),
-        every if active is None else active,
+        act,
     )
     tfp = tfps[k]
     if not (ub >= theta).any():  # every pixel proven static in every history frame
@@ -684,7 +685,7 @@ def _history(
         ub,
         counts,
         isi,
-        every if active is None else active,
+        act,
     )
     masks = counts >= theta
     # TFI where a frame has dynamic pixels, its clipped TFP elsewhere (as csr_frames)

@@ -881,7 +881,8 @@ def fuse_matches(
         if wanted.shape != ys.shape:
             raise ValueError(f"wanted {wanted.shape} for {ys.size} matched pixels")
         js = np.flatnonzero(wanted).astype(np.int64)
-        out[~wanted] = ref_raw[ys[~wanted], xs[~wanted]]
+        rest = ~wanted
+        out[rest] = ref_raw[ys[rest], xs[rest]]
     scale = float(patch * patch * h * h) if h > 0 else 0.0
     return _fuse_kernel(
         ref_raw,

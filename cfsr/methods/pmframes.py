@@ -77,12 +77,12 @@ class _Region(NamedTuple):
 
 
 @njit(parallel=True, cache=True)
-def _pm_kernel(span, centers_, region, raw, tfa, fill):
+def _pm_kernel(span, centers_, region, raw, tfa):
     # pragma: no cover - numba
     """TFI rates (``1 / ISI``, float32) and TFA rates at ``centers`` (ascending; written to
     frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the crop rows ``rows`` and, in
     each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``; the
-    rest of those rows takes ``fill`` (the other rows are the caller's)
+    rest of those rows takes NaN (the other rows are the caller's)
     (``span``, ``centers_`` and ``region``: :class:`_Span`, :class:`_Centers`,
     :class:`_Region`; ``m`` is ``max_isi``, ``thr`` the guide's intervals).
 
@@ -196,6 +196,7 @@ def _pm_kernel(span, centers_, region, raw, tfa, fill):
                 if thr > 0:
                     tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
         # the columns outside the runs (the frames are not pre-filled: one write per value)
+        fill = np.float32(np.nan)
         gap = 0
         for ri in range(runs_at[tr], runs_at[tr + 1] + 1):
             end = runs[ri, 0] if ri < runs_at[tr + 1] else cw
@@ -290,7 +291,6 @@ def pm_frames(
     """
     n = src.n
     y0, y1, x0, x1 = box
-    partial = tiles is not None and not tiles.all()
     if tiles is None:
         tiles = np.ones((-(-src.h // TILE), -(-src.w // TILE)), bool)
     # tile rows of the box, aligned on the crop's first row
@@ -306,7 +306,6 @@ def pm_frames(
     thr = int(p["pm_guide"])
     # the crop rows with work
     rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
-    fill = np.float32(np.nan if partial else 1.0)
     raw = np.empty((cs.size, y1 - y0, x1 - x0), np.float32)
     tfa = np.empty(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     _pm_kernel(
@@ -315,13 +314,12 @@ def pm_frames(
         _Region(y0, x0, TILE, rows, runs_at, runs),
         raw,
         tfa,
-        fill,
     )
     idle = np.ones(y1 - y0, bool)
     idle[rows] = False
-    raw[:, idle] = fill
+    raw[:, idle] = np.nan
     if thr > 0:
-        tfa[:, idle] = fill
+        tfa[:, idle] = np.nan
     g = raw if thr <= 0 else tfa
     if p["pm_sigma"] <= 0:
         if guide_out is not None:
