@@ -163,3 +163,33 @@ def test_grow_span_equals_growing_one_interval_at_a_time():
         assert tuple(grow_span(times, f0, f1, ip, c, n_int)) == _grow_one_by_one(
             times, f0, f1, ip, c, n_int
         )
+
+
+def _blur_in_child(q) -> None:
+    from cfsr.methods.pmframes import _blur_pool
+
+    q.put(_blur_pool().submit(lambda: 41 + 1).result(timeout=20))
+
+
+@pytest.mark.skipif(
+    "fork" not in __import__("multiprocessing").get_all_start_methods(),
+    reason="needs the fork start method (POSIX)",
+)
+def test_blur_threads_work_in_a_forked_child():
+    """A child forked after the guides were blurred gets a fresh pool (the parent's threads
+    do not survive the fork, and jobs on the inherited pool would never run)."""
+    import multiprocessing as mp
+
+    from cfsr.methods.pmframes import _blur_pool
+
+    assert _blur_pool().submit(lambda: 1).result(timeout=20) == 1  # the parent's threads exist
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    proc = ctx.Process(target=_blur_in_child, args=(q,))
+    proc.start()
+    try:
+        assert q.get(timeout=30) == 42
+    finally:
+        proc.join(timeout=10)
+        if proc.is_alive():
+            proc.kill()

@@ -27,8 +27,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from cfsr._pool import in_parts, parts_for
-
 __all__ = ["to_u8", "mog_background", "mog_objects"]
 
 
@@ -85,46 +83,17 @@ def mog_background(
     background : ndarray (H, W) float32
         Background image B on the 8-bit scale (see module notes).
     """
+    import cv2
+
     f = np.ascontiguousarray(frames, dtype=np.uint8)
     if f.ndim != 3 or f.shape[0] == 0:
         raise ValueError(f"frames must be (K, H, W) with K >= 1, got {f.shape}")
-    k, h, w = f.shape
-    if h * w == 0:
-        return np.zeros((h, w), bool), np.zeros((h, w), np.float32)
-    flat = f.reshape(k, h * w)
-    fg = np.empty(flat.shape[1], bool)
-    background = np.empty(flat.shape[1], np.float32)
-    settings = (int(history), int(nmixtures), float(background_ratio), float(noise_sigma))
-    # the model is per pixel and OpenCV runs it on one core: pixels are split over threads
-    # (cfsr._pool), same numbers
-    parts = parts_for(flat.shape[1], _MIN_PART)
-    bounds = np.linspace(0, flat.shape[1], parts + 1).astype(np.int64)
-
-    def part(i: int) -> None:
-        a, b = int(bounds[i]), int(bounds[i + 1])
-        fg[a:b], background[a:b] = _mog_pixels(flat[:, a:b], settings, float(learning_rate))
-
-    in_parts(part, parts)
-    return fg.reshape(h, w), background.reshape(h, w)
-
-
-#: Fewest pixels worth a thread of their own in :func:`mog_background` (12 frames of 4,096
-#: pixels take ~0.6 ms).
-_MIN_PART = 4096
-
-
-def _mog_pixels(
-    f: np.ndarray, settings: tuple[int, int, float, float], learning_rate: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`mog_background` of the pixels ``f`` (``(K, N)`` uint8, any stride): the last
-    frame's foreground and B, both ``(N,)``."""
-    import cv2
-
-    f = np.ascontiguousarray(f).reshape(f.shape[0], 1, -1)
-    sub = cv2.bgsegm.createBackgroundSubtractorMOG(*settings)
+    sub = cv2.bgsegm.createBackgroundSubtractorMOG(
+        int(history), int(nmixtures), float(background_ratio), float(noise_sigma)
+    )
     fg = np.zeros(f.shape, bool)
     for k in range(f.shape[0]):
-        fg[k] = sub.apply(f[k], learningRate=learning_rate) > 0
+        fg[k] = sub.apply(f[k], learningRate=float(learning_rate)) > 0
     hist = f[:-1] if f.shape[0] > 1 else f
     bgm = ~fg[:-1] if f.shape[0] > 1 else np.ones(f.shape, bool)
     n_bg = bgm.sum(axis=0)
@@ -133,7 +102,7 @@ def _mog_pixels(
     never = n_bg == 0  # the temporal median only where MOG never saw background (it is slow)
     if never.any():
         background[never] = np.median(hist[:, never], axis=0).astype(np.float32)
-    return fg[-1, 0], background[0]
+    return fg[-1], background
 
 
 def mog_objects(current: np.ndarray, background: np.ndarray, phi0: float) -> np.ndarray:

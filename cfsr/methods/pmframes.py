@@ -10,14 +10,16 @@ pixel (:func:`pm_tiles`); the other tiles hold NaN, which PatchMatch never match
 
 from __future__ import annotations
 
+import os
+import threading
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from cfsr._isi import isi_from_times, search_range
-from cfsr._pool import in_parts, parts_for
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
@@ -334,7 +336,36 @@ def pm_frames(
             cv2.GaussianBlur(g[k], (0, 0), sigma, dst=out[k])
 
     # OpenCV blurs an image this small on one core: the frames are split over threads instead
-    # (cfsr._pool), same numbers
-    parts = parts_for(g.shape[0])
-    in_parts(lambda i: blur(range(i, g.shape[0], parts)), parts)
+    # (it releases the GIL; as many as numba's, so NUMBA_NUM_THREADS limits both), same numbers
+    parts = max(1, min(get_num_threads(), g.shape[0]))
+    jobs = [_blur_pool().submit(blur, range(i, g.shape[0], parts)) for i in range(1, parts)]
+    blur(range(0, g.shape[0], parts))
+    for j in jobs:
+        j.result()
     return raw, out
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _blur_pool() -> ThreadPoolExecutor:
+    """Helper threads for the guides' Gaussian blur (created on first use)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(
+                max_workers=max(1, (os.cpu_count() or 1) - 1), thread_name_prefix="cfsr-blur"
+            )
+        return _POOL
+
+
+def _forget_pool() -> None:
+    # a forked child inherits the pool object but not its threads: jobs would never run
+    global _POOL, _POOL_LOCK
+    _POOL = None
+    _POOL_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
