@@ -487,8 +487,10 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
             tgt = targets[i]
             offi = off[i]
             costi = cost[i]
-            for j in range(j0, j1):
+            for j in range(j0, j1):  # the outputs come uninitialised (_matching)
                 costi[j] = np.inf
+                offi[j, 0] = 0
+                offi[j, 1] = 0
             predicted = src[i, 0, 0] >= 0
             max_r = radius[i]
             for it in range(scans[i]):
@@ -615,7 +617,7 @@ def _independent_plan(n: int, iters: int, max_radius: int) -> _Plan:
 
 
 def _prepare(ref, targets, mask, patch: int, iters: int, max_radius: int, origin):
-    """Checked float32 images, the masked pixels and zeroed outputs of both searches."""
+    """Checked float32 images, the masked pixels and the outputs of both searches."""
     ref = np.ascontiguousarray(ref, dtype=np.float32)
     targets = np.ascontiguousarray(targets, dtype=np.float32)
     found = _matching(ref.shape, targets.shape, mask, patch, iters, max_radius, origin)
@@ -623,7 +625,8 @@ def _prepare(ref, targets, mask, patch: int, iters: int, max_radius: int, origin
 
 
 def _matching(ref_shape, targets_shape, mask, patch: int, iters: int, max_radius: int, origin):
-    """The masked pixels and zeroed outputs for images of these shapes, settings checked."""
+    """The masked pixels and the (uninitialised) outputs for images of these shapes, settings
+    checked."""
     if len(targets_shape) != 3 or tuple(targets_shape[1:]) != tuple(ref_shape):
         got, want = tuple(targets_shape), tuple(ref_shape)
         raise ValueError(f"targets {got} do not match reference {want}")
@@ -637,8 +640,10 @@ def _matching(ref_shape, targets_shape, mask, patch: int, iters: int, max_radius
     # the random search of a pixel is keyed by its position in the full frame, so the same
     # pixel draws the same offsets whatever else is matched (crop or whole frame)
     keys = (ys + int(origin[0])) * np.int64(_ROW_KEY) + (xs + int(origin[1]))
-    off = np.zeros((targets_shape[0], ys.size, 2), np.int32)
-    cost = np.zeros((targets_shape[0], ys.size), np.float32)
+    # uninitialised: both kernels set every pixel's start (offset 0, cost inf or its own) in
+    # their threads, so the pages are first touched there and not zeroed twice
+    off = np.empty((targets_shape[0], ys.size, 2), np.int32)
+    cost = np.empty((targets_shape[0], ys.size), np.float32)
     return _Pixels(ys, xs, index, keys), off, cost
 
 

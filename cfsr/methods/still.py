@@ -104,11 +104,16 @@ def _returns(tm, start, stop, direction, rng, period, min_run, jump):  # pragma:
             b += direction
         if seen and abs(b - a) >= 4 and abs(tm[b] - tm[a]) >= min_run:
             # the period range of the stretch without its end spikes (the one next to the
-            # change may belong to it, tilting the line) overlaps the run's
+            # change may belong to it, tilting the line) overlaps the run's; that range lies
+            # within the one its last spike alone allows, ((dt - 1) / dk, (dt + 1) / dk), so
+            # where that one misses the run's the walk over the stretch is skipped (same
+            # answer: the slow texture's stretches on the disk mostly miss)
             s0, s1 = min(a, b) + 1, max(a, b) - 1
-            sln, sld, shn, shd = _range(tm, s0, s1)
-            if sln * hd < hn * sld and shn * ld > ln * shd:
-                return True
+            dt, dk = tm[s1] - tm[s0], s1 - s0
+            if (dt - 1) * hd < hn * dk and (dt + 1) * ld > ln * dk:
+                sln, sld, shn, shd = _range(tm, s0, s1)
+                if sln * hd < hn * sld and shn * ld > ln * shd:
+                    return True
         seen |= jumped
         a = b
     return False
