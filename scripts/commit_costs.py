@@ -18,8 +18,9 @@ turn, one call each per pair, on the same simulated spikes (this checkout's simu
 host that slows down meets every revision within one pair, and the median of the per-pair
 ratios to the first revision, with its interquartile range, resolves a few percent that
 single rounds do not (measured: the separate-process rounds of one commit ranged 84-141 ms
-on the disk in one run). The first pair of a new revision compiles it (minutes; its numba
-cache is kept beside the copy).
+on the disk in one run). The order of the revisions turns from pair to pair, so none always
+runs first or right after the same one. The first pair of a new revision compiles it
+(minutes; its numba cache is kept beside the copy).
 """
 
 from __future__ import annotations
@@ -70,7 +71,9 @@ def checkout(rev: str) -> Path:
 _CHILD_PAIRED = """
 import json, statistics, sys, time, importlib
 from cfsr._bits import pack_frames
+from cfsr._heap import keep_freed_memory
 from cfsr.simulate import simulate
+keep_freed_memory()  # as the cfsr command line does
 method, scenes, pairs = sys.argv[1], sys.argv[2].split(","), int(sys.argv[3])
 names = sys.argv[4:]
 mods = [(importlib.import_module(n + ".streaming"), importlib.import_module(n + ".layout"))
@@ -83,11 +86,14 @@ for scene in scenes:
         sr = st.StreamingReconstructor(method, lay.Layout(400, 250), slack=len(packed))
         sr.push(packed, 0)
         t = sr.latest_step()
-        sr.compute(t)  # compile, warm up
+        for _ in range(3):  # compile, warm up
+            sr.compute(t)
         runs.append((sr, t))
     ms = [[] for _ in runs]
-    for _ in range(pairs):
-        for k, (sr, t) in enumerate(runs):
+    for i in range(pairs):
+        # the order turns every pair: no revision always runs first or after the same one
+        for k in [(i + j) % len(runs) for j in range(len(runs))]:
+            sr, t = runs[k]
             if hasattr(sr, "memo"):
                 sr.memo.clear()
             t0 = time.perf_counter()
