@@ -122,6 +122,32 @@ def test_noise_level_is_zero_without_noise_and_rises_with_shot_noise():
     assert 0.05 < levels[1] < 0.5  # ~0.2 at 100 electrons per threshold
 
 
+def _noise_level_by_medians(s: np.ndarray, clip: float = 3.0, rounds: int = 3) -> float:
+    """noise_level's rule as its docstring states it, by plain medians (no shortcut)."""
+    s = s[np.isfinite(s)]
+    v = float(np.median(s)) if s.size else 0.0
+    for _ in range(rounds):
+        if v <= 0:
+            return 0.0
+        v = float(np.median(s[s <= clip * v]))
+    return max(0.0, v)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.sampled_from([-1.0, -0.25, 0.0, 0.1, 0.2, 0.5, 3.0, float("nan"), float("inf")]),
+        min_size=0,
+        max_size=40,
+    )
+)
+def test_noise_level_is_the_clipped_median_of_its_rule(values):
+    """The count shortcut (more than half the values <= 0: level 0, no median) gives the
+    rule's value on any mix, odd and even counts, ties at the middle included."""
+    s = np.asarray(values, np.float32)
+    assert noise_level(s) == _noise_level_by_medians(s)
+
+
 def test_noise_level_ignores_a_minority_of_strong_movers():
     rng = np.random.default_rng(0)
     spread = rng.normal(0.2, 0.05, (100, 100)).astype(np.float32)

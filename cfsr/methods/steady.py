@@ -277,6 +277,10 @@ def noise_level(spread: np.ndarray, *, clip: float = 3.0, rounds: int = 3) -> fl
         s = s[::k, ::k]
     s = s.ravel()
     s = s[np.isfinite(s)]
+    if np.count_nonzero(s <= 0) > s.size // 2:
+        # the middle value (both middle values of an even count) <= 0: the median is, and the
+        # level 0, without sorting (a noiseless frame: most steady pixels' spread is <= 0)
+        return 0.0
     v = float(np.median(s)) if s.size else 0.0
     for _ in range(rounds):
         if v <= 0:
