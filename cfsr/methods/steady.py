@@ -54,6 +54,7 @@ __all__ = [
     "steadiness",
     "steady_range",
     "noise_level",
+    "clipped_median",
     "steady_mask",
     "check_static",
     "DISTINCTIONS",
@@ -281,7 +282,13 @@ def noise_level(spread: np.ndarray, *, clip: float = 3.0, rounds: int = 3) -> fl
         # the middle value (both middle values of an even count) <= 0: the median is, and the
         # level 0, without sorting (a noiseless frame: most steady pixels' spread is <= 0)
         return 0.0
-    v = float(np.median(s)) if s.size else 0.0
+    return clipped_median(s, float(np.median(s)) if s.size else 0.0, clip=clip, rounds=rounds)
+
+
+def clipped_median(s: np.ndarray, v: float, *, clip: float, rounds: int) -> float:
+    """:func:`noise_level`'s rounds from the first estimate ``v`` (the median of the finite
+    values ``s``): the median again over the values within ``clip * v``, ``rounds`` times; 0
+    once an estimate is <= 0."""
     for _ in range(rounds):
         if v <= 0:
             return 0.0
