@@ -20,6 +20,7 @@ from pathlib import Path
 from fastapi import Depends, FastAPI, HTTPException, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from cfsr.cli import version
 from service.hub import FrameHub
@@ -62,7 +63,9 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
                 await task
             await asyncio.to_thread(rt.stop)
 
-    app = FastAPI(
+    # FastAPIOffline is FastAPI with /docs (Swagger UI) and /redoc served from the assets its
+    # wheel ships, not from a CDN: the API docs work on a machine with no internet
+    app = FastAPIOffline(
         # every body, on every router, is refused with 422 if it holds NaN/Infinity/1e999
         dependencies=[Depends(reject_non_finite_json)],
         title="CFSR live",
