@@ -11,11 +11,13 @@
   const state = {
     frames: 0, step: null, method: null, width: 0, height: 0, masks: [], maskPixels: {},
     statusUpdates: 0, lastStatus: null, connected: false, methods: {}, config: null,
-    drawn: 0, limits: null,
+    drawn: 0, limits: null, applied: 0, compare: false, pinned: null, lastSnapshot: null,
   };
   window.cfsrViewer = state;
 
   // ---- REST helpers ----------------------------------------------------------------------------
+  // An error carries every entry of a 422 answer (`details`: [{loc, msg}]), so the form can
+  // put each one beside its own field instead of showing the first as one line.
   async function api(path, opts = {}) {
     const headers = Object.assign({}, opts.headers || {});
     if (opts.body !== undefined) headers["Content-Type"] = "application/json";
@@ -27,10 +29,16 @@
     try { data = await res.json(); } catch (e) { data = null; }
     if (!res.ok) {
       const d = data && data.detail;
-      const detail = !d ? res.statusText : typeof d === "string" ? d
-        : Array.isArray(d) ? d.map((e) => e.msg || JSON.stringify(e)).join("; ") : JSON.stringify(d);
-      throw new Error(detail);
+      const details = !d ? [{ loc: [], msg: res.statusText }] : typeof d === "string" ? [{ loc: [], msg: d }]
+        : Array.isArray(d) ? d.map((e) => ({ loc: e.loc || [], msg: e.msg || JSON.stringify(e) }))
+          : [{ loc: [], msg: JSON.stringify(d) }];
+      const err = new Error(details.map((e) => e.msg).join("; "));
+      err.details = details;
+      err.status = res.status;
+      throw err;
     }
+    data = data || {};
+    data.__status = res.status;
     return data;
   }
   function msg(el, text, isError) {
@@ -47,22 +55,25 @@
     const f = x - k;
     for (let c = 0; c < 3; c++) HEAT[i * 3 + c] = Math.round(HEAT_ANCHORS[k][c] * (1 - f) + HEAT_ANCHORS[k + 1][c] * f);
   }
-  const COARSE = [255, 64, 64], FINE = [64, 255, 96], ALPHA = 0.45;
+  // the same colours as --coarse / --fine in style.css; where both masks hold, the fine one
+  // is painted (it is the finer statement), so the two never blend into a third colour
+  const COARSE = [47, 123, 255], FINE = [255, 140, 26], ALPHA = 0.55;
   (function drawLegend() {
-    const ctx = $("legend-bar").getContext("2d");
-    const img = ctx.createImageData(256, 12);
-    for (let y = 0; y < 12; y++) for (let x = 0; x < 256; x++) {
+    const lctx = $("legend-bar").getContext("2d");
+    const img = lctx.createImageData(256, 10);
+    for (let y = 0; y < 10; y++) for (let x = 0; x < 256; x++) {
       const o = (y * 256 + x) * 4;
       img.data[o] = HEAT[x * 3]; img.data[o + 1] = HEAT[x * 3 + 1]; img.data[o + 2] = HEAT[x * 3 + 2]; img.data[o + 3] = 255;
     }
-    ctx.putImageData(img, 0, 0);
+    lctx.putImageData(img, 0, 0);
   })();
 
   // ---- frame decoding and drawing -------------------------------------------------------------
   const canvas = $("frame");
   const ctx = canvas.getContext("2d");
+  const pinCanvas = $("pinned");
+  const pinCtx = pinCanvas.getContext("2d");
   let latest = null;      // newest decoded message, drawn on the next animation frame
-  let imageData = null;
   let dirty = false;
   const fpsTimes = [];
 
@@ -86,47 +97,59 @@
     return { step, frameNo, w, h, gain, computeMs, latencyMs, method: name, image, coarse, fine };
   }
 
+  const bit = (plane, p) => (plane[p >> 3] >> (p & 7)) & 1;
+  function paint(f, target, tctx) {
+    if (target.width !== f.w || target.height !== f.h) { target.width = f.w; target.height = f.h; fit(); }
+    const imageData = tctx.createImageData(f.w, f.h);
+    const heat = document.querySelector('input[name="view"]:checked').value === "heat";
+    const showC = $("ov-coarse").checked && f.coarse, showF = $("ov-fine").checked && f.fine;
+    const d = imageData.data, img = f.image, n = f.w * f.h;
+    for (let p = 0, o = 0; p < n; p++, o += 4) {
+      const v = img[p];
+      let r, g, b;
+      if (heat) { r = HEAT[v * 3]; g = HEAT[v * 3 + 1]; b = HEAT[v * 3 + 2]; } else { r = g = b = v; }
+      const m = showF && bit(f.fine, p) ? FINE : showC && bit(f.coarse, p) ? COARSE : null;
+      if (m) { r = r * (1 - ALPHA) + m[0] * ALPHA; g = g * (1 - ALPHA) + m[1] * ALPHA; b = b * (1 - ALPHA) + m[2] * ALPHA; }
+      d[o] = r; d[o + 1] = g; d[o + 2] = b; d[o + 3] = 255;
+    }
+    tctx.putImageData(imageData, 0, 0);
+  }
+
   function render() {
     if (dirty && latest) {
-      const f = latest;
-      if (canvas.width !== f.w || canvas.height !== f.h || !imageData) {
-        canvas.width = f.w; canvas.height = f.h;
-        imageData = ctx.createImageData(f.w, f.h);
-        applyZoom();
-      }
-      const heat = document.querySelector('input[name="view"]:checked').value === "heat";
-      const showC = $("ov-coarse").checked && f.coarse, showF = $("ov-fine").checked && f.fine;
-      const d = imageData.data, img = f.image, n = f.w * f.h;
-      for (let p = 0, o = 0; p < n; p++, o += 4) {
-        const v = img[p];
-        let r, g, b;
-        if (heat) { r = HEAT[v * 3]; g = HEAT[v * 3 + 1]; b = HEAT[v * 3 + 2]; } else { r = g = b = v; }
-        if (showC && (f.coarse[p >> 3] >> (p & 7)) & 1) {
-          r = r * (1 - ALPHA) + COARSE[0] * ALPHA; g = g * (1 - ALPHA) + COARSE[1] * ALPHA; b = b * (1 - ALPHA) + COARSE[2] * ALPHA;
-        }
-        if (showF && (f.fine[p >> 3] >> (p & 7)) & 1) {
-          r = r * (1 - ALPHA) + FINE[0] * ALPHA; g = g * (1 - ALPHA) + FINE[1] * ALPHA; b = b * (1 - ALPHA) + FINE[2] * ALPHA;
-        }
-        d[o] = r; d[o + 1] = g; d[o + 2] = b; d[o + 3] = 255;
-      }
-      ctx.putImageData(imageData, 0, 0);
+      paint(latest, canvas, ctx);
+      if (state.pinned && state.pinned.redraw) { paint(state.pinned.frame, pinCanvas, pinCtx); state.pinned.redraw = false; }
       dirty = false;
       state.drawn++;
       $("no-frame").classList.add("hidden");
+      showCompareLabels();
     }
     requestAnimationFrame(render);
   }
   requestAnimationFrame(render);
 
-  function applyZoom() {
-    const z = Number($("zoom").value);
-    canvas.style.width = canvas.width * z + "px";
-    canvas.style.height = canvas.height * z + "px";
+  // ---- the picture fills the space it has ("fit"), or a fixed zoom ----------------------------
+  function fit() {
+    const stage = $("stage");
+    const w = canvas.width, h = canvas.height;
+    const z = $("zoom").value;
+    let scale;
+    if (z === "fit") {
+      const sw = stage.clientWidth - 8, sh = stage.clientHeight - 8;
+      scale = Math.max(0.25, Math.min(sw / w, sh / h));
+    } else scale = Number(z);
+    for (const c of [canvas, pinCanvas]) {
+      c.style.width = Math.floor(w * scale) + "px";
+      c.style.height = Math.floor(h * scale) + "px";
+    }
+    setSplit();
   }
-  $("zoom").addEventListener("change", applyZoom);
+  $("zoom").addEventListener("change", fit);
+  new ResizeObserver(fit).observe($("stage"));
   for (const el of document.querySelectorAll('input[name="view"], #ov-coarse, #ov-fine')) {
     el.addEventListener("change", () => {
       $("legend").classList.toggle("hidden", document.querySelector('input[name="view"]:checked').value !== "heat");
+      if (state.pinned) state.pinned.redraw = true;
       dirty = true;
     });
   }
@@ -154,14 +177,16 @@
     $("legend-max").textContent = f.gain.toFixed(3);
     $("ov-coarse").disabled = !f.coarse;
     $("ov-fine").disabled = !f.fine;
+    for (const w of frameWaiters.splice(0)) w(f);
   }
+  const frameWaiters = [];
+  const nextFrame = () => new Promise((resolve) => frameWaiters.push(resolve));
 
   // ---- WebSocket with reconnect -----------------------------------------------------------------
   let backoff = 250;
   function connect() {
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    const url = proto + "//" + location.host + "/ws";
-    const ws = new WebSocket(url);
+    const ws = new WebSocket(proto + "//" + location.host + "/ws");
     ws.binaryType = "arraybuffer";
     ws.onopen = () => { backoff = 250; state.connected = true; setConn(true); };
     ws.onmessage = (ev) => {
@@ -181,40 +206,247 @@
   }
 
   // ---- methods and parameters ---------------------------------------------------------------------
+  // Parameters people change are shown; the rest are grouped by the stage they tune and
+  // collapsed. The groups follow the Param tables' naming (a parameter no rule names lands in
+  // "other", so a new one is never hidden).
+  const MAIN = ["tfp_window", "distinction", "phi0", "pm_count", "adaptive"];
+  const FLAT_UP_TO = 6;   // a method with this many parameters or fewer shows them all
+  const GROUPS = [
+    ["coarse distinction and static rate", /^(T|theta|tfp_.*|max_isi|static_estimator|static_span|steady_.*|distinction|coarse_close|dynamic_.*)$/],
+    ["fine distinction (MOG, DAISI, still pixels)", /^(mog_.*|still_.*|phi0|phi|daisi_span|close_size|min_area|dilate)$/],
+    ["PatchMatch", /^pm_.*$/],
+    ["adaptive (skip what the scene does not need)", /^(adaptive|static_tol|static_tile|static_window)$/],
+  ];
+  const QUALITY = "quality";
+
+  function paramDefaults(m) {
+    const out = {};
+    for (const [k, p] of Object.entries(m.params)) out[k] = p.default;
+    return out;
+  }
+  function fieldFor(key, p, v) {
+    const label = document.createElement("label");
+    label.textContent = key + (p.unit ? " [" + p.unit + "]" : "");
+    label.title = p.help + (p.range ? " (" + p.range + ")" : "");
+    label.htmlFor = "param-" + key;
+    let input;
+    if (p.choices && p.choices.length) {
+      input = document.createElement("select");
+      for (const c of p.choices) { const o = document.createElement("option"); o.value = c; o.textContent = c; input.appendChild(o); }
+      input.value = v; input.dataset.kind = "choice";
+    } else if (typeof p.default === "boolean") {
+      input = document.createElement("input"); input.type = "checkbox"; input.checked = !!v; input.dataset.kind = "boolean";
+    } else if (typeof p.default === "number") {
+      input = document.createElement("input"); input.type = "number"; input.step = "any"; input.value = v; input.dataset.kind = "number";
+      if (p.minimum !== null && p.minimum !== undefined) input.min = p.minimum;
+      if (p.maximum !== null && p.maximum !== undefined) input.max = p.maximum;
+    } else {
+      input = document.createElement("input"); input.type = "text"; input.value = v; input.dataset.kind = "text";
+    }
+    input.id = "param-" + key; input.name = key; input.title = label.title;
+    input.classList.add("param");
+    const wrap = document.createElement("span");
+    wrap.className = "field";
+    const err = document.createElement("span");
+    err.className = "field-err"; err.id = "err-param-" + key;
+    wrap.appendChild(input); wrap.appendChild(err);
+    input.addEventListener(input.tagName === "SELECT" || input.type === "checkbox" ? "change" : "input", () => {
+      checkField(input); markPreset(); scheduleApply();
+    });
+    return [label, wrap];
+  }
+
   function buildParams(name, values) {
-    const form = $("params-form");
-    form.innerHTML = "";
+    const form = $("params-form"), groups = $("param-groups");
+    form.innerHTML = ""; groups.innerHTML = "";
     const m = state.methods[name];
     $("method-summary").textContent = m ? (m.summary + (m.reference ? " (" + m.reference + ")" : "")) : "";
     if (!m) return;
-    for (const [key, p] of Object.entries(m.params)) {
-      const label = document.createElement("label");
-      label.textContent = key + (p.unit ? " [" + p.unit + "]" : "");
-      label.title = p.help;
-      label.htmlFor = "param-" + key;
-      let input;
-      const v = values && key in values ? values[key] : p.default;
-      if (typeof p.default === "boolean") {
-        input = document.createElement("input"); input.type = "checkbox"; input.checked = !!v;
-      } else if (typeof p.default === "number") {
-        input = document.createElement("input"); input.type = "number"; input.step = "any"; input.value = v;
-      } else {
-        input = document.createElement("input"); input.type = "text"; input.value = v;
-      }
-      input.id = "param-" + key; input.name = key; input.title = p.help;
-      input.dataset.kind = typeof p.default;
-      form.appendChild(label); form.appendChild(input);
+    const vals = Object.assign(paramDefaults(m), values || {});
+    const keys = Object.keys(m.params).filter((k) => k !== QUALITY);
+    const flat = keys.length <= FLAT_UP_TO;
+    const buckets = GROUPS.map(([title]) => ({ title, keys: [] }));
+    const other = { title: "other", keys: [] };
+    for (const k of keys) {
+      if (flat || MAIN.includes(k)) { form.append(...fieldFor(k, m.params[k], vals[k])); continue; }
+      const i = GROUPS.findIndex(([, re]) => re.test(k));
+      (i >= 0 ? buckets[i] : other).keys.push(k);
     }
+    for (const b of [...buckets, other]) {
+      if (!b.keys.length) continue;
+      const det = document.createElement("details");
+      det.className = "group";
+      const sum = document.createElement("summary");
+      sum.innerHTML = "";
+      sum.append(b.title + " ");
+      const c = document.createElement("span"); c.className = "count"; c.textContent = "(" + b.keys.length + ")";
+      sum.appendChild(c);
+      const body = document.createElement("div"); body.className = "group-body";
+      for (const k of b.keys) body.append(...fieldFor(k, m.params[k], vals[k]));
+      det.append(sum, body);
+      groups.appendChild(det);
+    }
+    // the quality tier (CFSR's speed tiers) and the library's presets come first
+    const qsel = $("quality-select"), hasQ = QUALITY in m.params;
+    $("quality-label").classList.toggle("hidden", !hasQ); qsel.classList.toggle("hidden", !hasQ);
+    qsel.innerHTML = "";
+    if (hasQ) {
+      // the live service adds "auto" (it picks the tier per frame to hold max fps)
+      const choices = ["auto", ...(m.params[QUALITY].choices || []).filter((c) => c !== "auto")];
+      for (const c of choices) { const o = document.createElement("option"); o.value = c; o.textContent = c; qsel.appendChild(o); }
+      qsel.value = vals[QUALITY];
+    }
+    const psel = $("preset-select");
+    psel.innerHTML = "";
+    for (const p of ["defaults", ...Object.keys(m.presets || {}), "custom"]) {
+      const o = document.createElement("option"); o.value = p; o.textContent = p;
+      if (p === "custom") o.disabled = true;
+      psel.appendChild(o);
+    }
+    markPreset();
   }
+
+  // the preset whose values the form holds, else "custom"
+  function markPreset() {
+    const m = state.methods[$("method-select").value];
+    if (!m) return;
+    const cur = readParams();
+    const base = paramDefaults(m);
+    const same = (want) => Object.keys(m.params).every((k) => k === QUALITY || String(cur[k]) === String(want[k]));
+    let name = "custom";
+    if (same(base)) name = "defaults";
+    else for (const [p, vals] of Object.entries(m.presets || {})) if (same(Object.assign({}, base, vals))) { name = p; break; }
+    $("preset-select").value = name;
+  }
+
   function readParams() {
     const out = {};
-    for (const el of $("params-form").querySelectorAll("input")) {
+    for (const el of document.querySelectorAll(".param")) {
       if (el.dataset.kind === "boolean") out[el.name] = el.checked;
-      else if (el.dataset.kind === "number") out[el.name] = Number(el.value);
+      else if (el.dataset.kind === "number") out[el.name] = el.value.trim() === "" ? NaN : Number(el.value);
       else out[el.name] = el.value;
     }
+    const m = state.methods[$("method-select").value];
+    if (m && QUALITY in m.params) out[QUALITY] = $("quality-select").value;
     return out;
   }
+
+  // ---- field checks: the Param table's bounds, beside the field --------------------------------
+  function fieldError(id, text) {
+    const err = $("err-" + id);
+    const input = id === "max_fps" ? $("max-fps") : $(id);
+    if (err) err.textContent = text || "";
+    if (input) input.classList.toggle("invalid", !!text);
+    return !text;
+  }
+  function rangeText(lo, hi, unit) { return lo + ".." + hi + (unit ? " " + unit : ""); }
+  function checkNumber(v, lo, hi, unit) {
+    if (!isFinite(v)) return "a number is needed";
+    if (lo !== null && lo !== undefined && v < lo) return "must be >= " + lo + " (" + rangeText(lo, hi, unit) + ")";
+    if (hi !== null && hi !== undefined && v > hi) return "must be <= " + hi + " (" + rangeText(lo, hi, unit) + ")";
+    return "";
+  }
+  function checkField(input) {
+    const m = state.methods[$("method-select").value];
+    const p = m && m.params[input.name];
+    if (!p) return true;
+    let text = "";
+    if (input.dataset.kind === "number") {
+      text = checkNumber(input.value.trim() === "" ? NaN : Number(input.value), p.minimum, p.maximum, p.unit);
+    } else if (input.dataset.kind === "choice" && p.choices && !p.choices.includes(input.value)) {
+      text = "one of " + p.choices.join(", ");
+    }
+    return fieldError("param-" + input.name, text);
+  }
+  function checkDisplay() {
+    let ok = true;
+    const lim = state.limits && state.limits.max_fps;
+    ok = fieldError("max_fps", checkNumber(Number($("max-fps").value), lim ? lim.minimum : 0, lim ? lim.maximum : null, "frames/s")) && ok;
+    const fixed = $("gain-mode").value === "fixed";
+    const g = $("gain").value.trim();
+    ok = fieldError("gain", !fixed && g === "" ? "" : checkNumber(Number(g), 0.000001, 1, "spikes/step")) && ok;
+    return ok;
+  }
+  function checkAll() {
+    let ok = checkDisplay();
+    for (const el of document.querySelectorAll(".param")) ok = checkField(el) && ok;
+    return ok;
+  }
+  // a server answer (422) put beside the fields it names; what names no field goes below
+  function showServerErrors(details) {
+    const rest = [];
+    for (const d of details) {
+      const loc = d.loc || [];
+      const pm = /^parameter (\w+)=/.exec(d.msg) || /parameter '(\w+)'/.exec(d.msg);
+      if (loc.includes("max_fps")) fieldError("max_fps", d.msg);
+      else if (loc.includes("gain") || /display gain/.test(d.msg)) fieldError("gain", d.msg);
+      else if (pm && $("param-" + pm[1])) fieldError("param-" + pm[1], d.msg.replace(/^parameter \w+=\S+: /, ""));
+      else rest.push(d.msg);
+    }
+    return rest;
+  }
+
+  // ---- applying: changes go to the service as the user makes them (debounced) -----------------
+  const DEBOUNCE_MS = 400;
+  let applyTimer = null, applyPending = false, inFlight = false, again = false, lastApplyAt = 0;
+  function scheduleApply(delay = DEBOUNCE_MS) {
+    clearTimeout(applyTimer);
+    applyPending = true;
+    applyTimer = setTimeout(() => applyConfig(), delay);
+  }
+  async function applyConfig(body) {
+    applyPending = false;
+    if (inFlight) { again = true; return; }
+    const method = $("method-select").value;
+    if (!body) {
+      if (!checkAll()) { msg($("config-msg"), "not sent: fix the marked field", true); return; }
+      body = {
+        method, params: readParams(),
+        display: { gain_mode: $("gain-mode").value, gain: Number($("gain").value) || null },
+        max_fps: Number($("max-fps").value),
+      };
+    }
+    inFlight = true; lastApplyAt = performance.now();
+    msg($("config-msg"), "applying...");
+    try {
+      const c = await api("/api/config", { method: "PUT", body });
+      const rebuild = !state.config || state.config.method !== c.method || body.params === undefined;
+      state.config = c; state.applied++;
+      if (rebuild) buildParams(c.method, c.params);
+      for (const el of document.querySelectorAll(".field-err")) el.textContent = "";
+      for (const el of document.querySelectorAll(".invalid")) el.classList.remove("invalid");
+      msg($("config-msg"), c.__status === 202 || c.state === "pending"
+        ? "sent: " + c.method + " starts once the worker is ready (compiling)" : "applied: " + c.method);
+    } catch (e) {
+      const rest = showServerErrors(e.details || [{ loc: [], msg: e.message }]);
+      msg($("config-msg"), rest.length ? rest.join("; ") : "not applied: see the marked field", true);
+    } finally {
+      inFlight = false; lastApplyAt = performance.now();
+    }
+    if (again) { again = false; scheduleApply(0); }
+  }
+
+  $("method-select").addEventListener("change", () => {
+    clearTimeout(applyTimer);
+    const name = $("method-select").value;
+    buildParams(name, null);
+    // a new method starts from its defaults (the service resets them on a method change)
+    applyConfig({ method: name });
+  });
+  $("preset-select").addEventListener("change", () => {
+    const m = state.methods[$("method-select").value];
+    const p = $("preset-select").value;
+    if (!m || p === "custom") return;
+    const vals = Object.assign(paramDefaults(m), p === "defaults" ? {} : m.presets[p]);
+    if (QUALITY in m.params) vals[QUALITY] = $("quality-select").value;
+    buildParams(m.name, vals);
+    scheduleApply(0);
+  });
+  $("quality-select").addEventListener("change", () => scheduleApply(0));
+  for (const id of ["gain-mode", "gain", "max-fps"]) {
+    $(id).addEventListener(id === "gain-mode" ? "change" : "input", () => { checkDisplay(); scheduleApply(); });
+  }
+
   async function loadMethods() {
     const list = await api("/api/methods");
     const sel = $("method-select");
@@ -223,6 +455,7 @@
       state.methods[m.name] = m;
       const o = document.createElement("option");
       o.value = m.name; o.textContent = m.name + (m.masks.length ? " (masks)" : "");
+      o.title = m.summary;
       sel.appendChild(o);
     }
   }
@@ -258,25 +491,117 @@
     else if (c.effective_gain) $("gain").value = c.effective_gain;
     $("max-fps").value = c.max_fps;
   }
-  $("method-select").addEventListener("change", () => {
-    const name = $("method-select").value;
-    buildParams(name, state.config && state.config.method === name ? state.config.params : null);
-  });
-  async function applyConfig() {
-    const method = $("method-select").value;
-    const body = {
-      method, params: readParams(),
-      display: { gain_mode: $("gain-mode").value, gain: Number($("gain").value) || null },
-      max_fps: Number($("max-fps").value) || 30,
-    };
-    try {
-      const c = await api("/api/config", { method: "PUT", body });
-      state.config = c;
-      buildParams(c.method, c.params);
-      msg($("config-msg"), "applied: " + c.method);
-    } catch (e) { msg($("config-msg"), e.message, true); }
+
+  // ---- compare: a pinned frame beside the live one, split by a slider ---------------------------
+  function setSplit() {
+    if (!state.pinned) return;
+    const s = Number($("split").value);
+    pinCanvas.style.clipPath = "inset(0 " + (100 - s) + "% 0 0)";
+    $("split-line").style.left = "calc(" + s + "% - 1px)";
   }
-  $("apply-config").addEventListener("click", applyConfig);
+  $("split").addEventListener("input", setSplit);
+  function showCompareLabels() {
+    const p = state.pinned;
+    for (const id of ["label-a", "label-b", "split-line"]) $(id).classList.toggle("hidden", !p);
+    if (!p || !latest) return;
+    $("label-a").textContent = "pinned: " + p.frame.method + " @ step " + p.frame.step;
+    $("label-b").textContent = "live: " + latest.method + " @ step " + latest.step;
+    const d = latest.step - p.frame.step;
+    $("compare-msg").textContent = d === 0
+      ? (latest.method === p.frame.method ? "same step, same method: pick another method or parameter"
+        : "same step: " + p.frame.method + " (left) vs " + latest.method + " (right)")
+      : "live frame is " + d + " steps " + (d > 0 ? "later" : "earlier") + " (pause the replay to compare on one step)";
+  }
+  async function startCompare() {
+    const r = state.lastStatus && state.lastStatus.source && state.lastStatus.source.replay;
+    // a replay is paused first, so both sides show the same step
+    if (r && r.playing) { await replay("PUT", "/api/replay", { playing: false }); await nextFrame(); }
+    if (!latest) await nextFrame();
+    const f = latest;
+    state.pinned = { frame: f, params: state.config ? state.config.params : {}, redraw: true };
+    state.compare = true;
+    pinCanvas.classList.remove("hidden");
+    $("compare-bar").classList.remove("hidden");
+    $("compare").classList.add("active");
+    fit(); dirty = true;
+  }
+  function stopCompare() {
+    state.pinned = null; state.compare = false;
+    pinCanvas.classList.add("hidden");
+    $("compare-bar").classList.add("hidden");
+    $("compare").classList.remove("active");
+    showCompareLabels();
+  }
+  $("compare").addEventListener("click", () => (state.pinned ? stopCompare() : startCompare()));
+  $("compare-close").addEventListener("click", stopCompare);
+
+  // ---- snapshot: PNG of the frame as shown, and its masks, with the settings inside -------------
+  const CRC = new Uint32Array(256);
+  for (let n = 0; n < 256; n++) { let c = n; for (let k = 0; k < 8; k++) c = c & 1 ? 0xedb88320 ^ (c >>> 1) : c >>> 1; CRC[n] = c >>> 0; }
+  function crc32(bytes) { let c = 0xffffffff; for (const b of bytes) c = CRC[(c ^ b) & 0xff] ^ (c >>> 8); return (c ^ 0xffffffff) >>> 0; }
+  // PNG tEXt chunks (keyword, Latin-1 text) after IHDR: any PNG reader shows them
+  function withText(png, fields) {
+    const enc = (s) => Uint8Array.from(s, (ch) => { const c = ch.charCodeAt(0); return c < 256 ? c : 63; });
+    const chunks = [];
+    for (const [k, v] of Object.entries(fields)) {
+      const data = new Uint8Array([...enc(k), 0, ...enc(v)]);
+      const out = new Uint8Array(12 + data.length), dv = new DataView(out.buffer);
+      dv.setUint32(0, data.length);
+      out.set(enc("tEXt"), 4); out.set(data, 8);
+      dv.setUint32(8 + data.length, crc32(out.subarray(4, 8 + data.length)));
+      chunks.push(out);
+    }
+    const head = 8 + 25;  // signature + IHDR
+    const total = png.length + chunks.reduce((a, c) => a + c.length, 0);
+    const out = new Uint8Array(total);
+    out.set(png.subarray(0, head));
+    let o = head;
+    for (const c of chunks) { out.set(c, o); o += c.length; }
+    out.set(png.subarray(head), o);
+    return out;
+  }
+  function canvasPng(c) {
+    return new Promise((resolve) => c.toBlob(async (b) => resolve(new Uint8Array(await b.arrayBuffer())), "image/png"));
+  }
+  function download(bytes, name) {
+    const url = URL.createObjectURL(new Blob([bytes], { type: "image/png" }));
+    const a = document.createElement("a");
+    a.href = url; a.download = name;
+    document.body.appendChild(a); a.click(); a.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10000);
+  }
+  async function snapshot() {
+    const f = latest;
+    if (!f) return null;
+    const params = state.config && state.config.method === f.method ? state.config.params : {};
+    const fields = {
+      Software: "CFSR live viewer", method: f.method, step: String(f.step),
+      parameters: JSON.stringify(params), masks: [f.coarse ? "coarse" : null, f.fine ? "fine" : null].filter(Boolean).join(","),
+      view: document.querySelector('input[name="view"]:checked').value
+        + ($("ov-coarse").checked && f.coarse ? "+coarse" : "") + ($("ov-fine").checked && f.fine ? "+fine" : ""),
+      "display gain": f.gain.toFixed(4) + " spikes/step",
+    };
+    const base = "cfsr-" + f.method + "-step" + f.step;
+    const names = [];
+    download(withText(await canvasPng(canvas), fields), base + ".png");
+    names.push(base + ".png");
+    if (f.coarse || f.fine) {
+      // masks as their own picture: red = coarse, green = fine (255 where set)
+      const c = document.createElement("canvas"); c.width = f.w; c.height = f.h;
+      const mctx = c.getContext("2d"), img = mctx.createImageData(f.w, f.h);
+      for (let p = 0, o = 0; p < f.w * f.h; p++, o += 4) {
+        img.data[o] = f.coarse && bit(f.coarse, p) ? 255 : 0;
+        img.data[o + 1] = f.fine && bit(f.fine, p) ? 255 : 0;
+        img.data[o + 3] = 255;
+      }
+      mctx.putImageData(img, 0, 0);
+      download(withText(await canvasPng(c), Object.assign({}, fields, { channels: "red: coarse mask, green: fine mask" })), base + "-masks.png");
+      names.push(base + "-masks.png");
+    }
+    state.lastSnapshot = { names, fields };
+    return names;
+  }
+  $("snapshot").addEventListener("click", snapshot);
 
   // ---- sources ----------------------------------------------------------------------------------------
   async function loadSources() {
@@ -303,14 +628,22 @@
   });
 
   // ---- replay controls ----------------------------------------------------------------------------
+  const STEP_FRAMES = 256;
   let seeking = false;
   async function replay(method, path, body) {
     try { return await api(path, { method, body }); }
     catch (e) { msg($("replay-msg"), e.message, true); return null; }
   }
+  const replayState = () => state.lastStatus && state.lastStatus.source && state.lastStatus.source.replay;
+  function stepBack() {
+    const r = replayState();
+    if (r) replay("POST", "/api/replay/seek", { position: Math.max(r.start, r.position - 2 * STEP_FRAMES) })
+      .then(() => replay("POST", "/api/replay/step", { n: STEP_FRAMES }));
+  }
   $("play").addEventListener("click", () => replay("PUT", "/api/replay", { playing: true }));
   $("pause").addEventListener("click", () => replay("PUT", "/api/replay", { playing: false }));
-  $("step").addEventListener("click", () => replay("POST", "/api/replay/step", { n: 256 }));
+  $("step").addEventListener("click", () => replay("POST", "/api/replay/step", { n: STEP_FRAMES }));
+  $("back").addEventListener("click", stepBack);
   $("loop").addEventListener("change", () => replay("PUT", "/api/replay", { loop: $("loop").checked }));
   $("speed").addEventListener("change", () => replay("PUT", "/api/replay", { speed: Number($("speed").value) }));
   $("seek").addEventListener("input", () => { seeking = true; });
@@ -331,12 +664,37 @@
     $("position").textContent = r.position; $("n-frames").textContent = r.n_frames;
     $("position-s").textContent = (r.position / r.rate_hz).toFixed(4);
     $("play").classList.toggle("active", r.playing);
+    $("pause").classList.toggle("active", !r.playing);
     if (document.activeElement !== $("speed")) {
       const opt = [...$("speed").options].find((o) => Number(o.value) === r.speed);
       if (opt) $("speed").value = opt.value;
     }
     if (document.activeElement !== $("loop")) $("loop").checked = r.loop;
   }
+
+  // ---- keyboard: space play/pause, arrows step, m masks, c compare ------------------------------------
+  document.addEventListener("keydown", (ev) => {
+    const t = ev.target;
+    if (ev.ctrlKey || ev.metaKey || ev.altKey) return;
+    if (t && (t.isContentEditable || ["INPUT", "SELECT", "TEXTAREA"].includes(t.tagName) && t.type !== "checkbox" && t.type !== "radio")) return;
+    const r = replayState();
+    if (ev.key === " ") {
+      ev.preventDefault();
+      if (r) replay("PUT", "/api/replay", { playing: !r.playing });
+    } else if (ev.key === "ArrowRight") {
+      ev.preventDefault();
+      if (r) replay("POST", "/api/replay/step", { n: STEP_FRAMES });
+    } else if (ev.key === "ArrowLeft") {
+      ev.preventDefault();
+      stepBack();
+    } else if (ev.key === "m" || ev.key === "M") {
+      const boxes = [$("ov-coarse"), $("ov-fine")].filter((b) => !b.disabled);
+      const on = !boxes.some((b) => b.checked);
+      for (const b of boxes) { b.checked = on; b.dispatchEvent(new Event("change")); }
+    } else if (ev.key === "c" || ev.key === "C") {
+      $("compare").click();
+    }
+  });
 
   // ---- recording ----------------------------------------------------------------------------------------
   let recording = false;
@@ -362,33 +720,65 @@
   // ---- live figures ---------------------------------------------------------------------------------------
   const fmt = (x, d = 1) => (x === null || x === undefined || !isFinite(x)) ? "-" : Number(x).toFixed(d);
   const big = (x) => (x === null || x === undefined) ? "-" : Math.round(x).toLocaleString("en-US");
-  // worker skips are by design (it only needs the newest window), so they are not shown as errors
-  function setDrop(id, v, neutral) { const el = $(id); el.textContent = big(v); el.classList.toggle("nonzero", v > 0 && !neutral); }
-  // the background compilation of a first start (service/kernels.py): which methods are ready
-  function kernelNote(k) {
-    if (!k || k.state !== "compiling") return k && k.state === "failed" ? "; kernel warm-up failed: " + k.error : "";
-    const n = k.ready.length + k.pending.length;
-    return "; compiling kernels in the background (" + k.ready.length + "/" + n + " methods ready"
-      + (k.pending.length ? ", now " + k.pending[0] : "") + ", " + Math.round(k.elapsed_s || 0) + " s)";
+  function setDrop(id, v) {
+    const el = $(id);
+    el.textContent = big(v);
+    el.parentElement.classList.toggle("nonzero", v > 0);
+    el.parentElement.classList.toggle("hidden", v === undefined && (id === "drop-late" || id === "drop-order"));
+  }
+  function workerText(w) {
+    let t = w.alive ? "alive" : "down";
+    if (w.workers !== undefined && w.workers !== null) {
+      t = w.workers + " process" + (w.workers === 1 ? "" : "es")
+        + (w.threads_per_worker ? " x " + w.threads_per_worker + " thread" + (w.threads_per_worker === 1 ? "" : "s") : "")
+        + ", " + t;
+    }
+    return t + ", restarts " + w.restarts;
+  }
+  function qualityText(q) {
+    const full = q.full || 0, fast = q.fast || 0, n = full + fast;
+    const share = n ? Math.round(100 * full / n) + " % full, " + Math.round(100 * fast / n) + " % fast" : "no frames yet";
+    return (q.mode || "-") + (q.mode === "auto" || n ? " (" + share + ")" : "");
+  }
+  // while a method compiles the service may show a ready one: say so, with the progress
+  function compileNote(s) {
+    const w = s.worker, k = s.kernels;
+    const progress = k && k.state === "compiling"
+      ? (k.ready.length + "/" + (k.ready.length + k.pending.length) + " methods compiled, " + Math.round(k.elapsed_s || 0) + " s")
+      : (w.first_frame_s > 3 ? Math.round(w.first_frame_s) + " s" : "");
+    if (w.fallback_method) {
+      const target = w.compiling || s.method;
+      return "showing " + w.fallback_method.toUpperCase() + " while " + target.toUpperCase() + " compiles"
+        + (progress ? " (" + progress + ")" : "");
+    }
+    if (w.compiling) return "compiling " + w.compiling.toUpperCase() + (progress ? " (" + progress + ")" : "");
+    if (w.first_frame_s > 3) return "first " + s.method + " frame for " + Math.round(w.first_frame_s)
+      + " s: the reconstruction kernels compile on first use on this machine (once, then cached)";
+    if (k && k.state === "compiling") return "compiling kernels in the background (" + progress + (k.pending.length ? ", now " + k.pending[0] : "") + ")";
+    if (k && k.state === "failed") return "kernel warm-up failed: " + k.error;
+    return "";
   }
   async function pollStatus() {
     try {
       const s = await api("/api/status");
       state.lastStatus = s; state.statusUpdates++;
+      const w = s.worker;
       $("fig-input").textContent = big(s.input_steps_per_s);
       $("fig-rtf").textContent = fmt(s.real_time_factor, 3);
-      $("fig-worker-rate").textContent = big(s.worker.steps_per_s);
+      $("fig-worker-rate").textContent = big(w.steps_per_s);
       $("fig-fps").textContent = fmt(s.output_fps, 1);
       $("fig-latency").textContent = fmt(s.latency_ms, 1);
       $("fig-compute").textContent = fmt(s.compute_ms, 1);
-      $("fig-worker").textContent = (s.worker.alive ? "alive" : "down") + ", restarts " + s.worker.restarts
-        + (s.worker.first_frame_s > 3
-          ? "; first " + s.method + " frame for " + Math.round(s.worker.first_frame_s)
-            + " s: numba compiles the kernels on first use on this machine (once, cached)"
-          : "")
-        + kernelNote(s.kernels);
+      $("fig-worker").textContent = workerText(w);
+      const hasQ = w.quality && w.quality.mode;
+      $("fig-quality-box").classList.toggle("hidden", !hasQ);
+      if (hasQ) $("fig-quality").textContent = qualityText(w.quality);
+      const note = compileNote(s);
+      $("compile-note").textContent = note;
+      $("compile-note").classList.toggle("hidden", !note);
       setDrop("drop-usb", s.drops.usb); setDrop("drop-replay", s.drops.replay);
-      setDrop("drop-ring", s.drops.ring); setDrop("drop-worker", s.drops.worker, true);
+      setDrop("drop-ring", s.drops.ring); setDrop("drop-worker", s.drops.worker);
+      setDrop("drop-late", w.dropped_late); setDrop("drop-order", w.dropped_order);
       setDrop("drop-clients", s.drops.clients); setDrop("drop-recorder", s.drops.recorder);
       const me = s.drops.per_client.filter((c) => c.kind === "ws");
       setDrop("drop-me", me.length === 1 ? me[0].dropped : me.reduce((a, c) => a + c.dropped, 0));
@@ -399,13 +789,15 @@
       st.classList.toggle("off", ["disconnected", "backoff", "error"].includes(s.source.state));
       showReplay(s.source.replay);
       showRecord(s.recording);
-      if (state.config && state.config.method !== s.method) await loadConfig();
+      // another tab (or the command line) changed the method: follow it, unless this page is
+      // applying its own change right now
+      const quiet = !inFlight && !applyPending && performance.now() - lastApplyAt > 3000;
+      if (quiet && state.config && state.config.method !== s.method) await loadConfig();
       msg($("status-msg"), s.source.last_error ? "source: " + s.source.last_error : "");
     } catch (e) { msg($("status-msg"), "status: " + e.message, true); }
     setTimeout(pollStatus, 1000);
   }
 
-  // ---- start -------------------------------------------------------------------------------------------------
   // ---- session: ask for the token once when the service needs one -----------------------------
   async function login(token) {
     return api("/api/session", { method: "POST", body: { token } });
