@@ -44,6 +44,9 @@ class KernelStatus(BaseModel):
     )
     ready: list[str] = Field(default_factory=list, description="methods compiled so far")
     pending: list[str] = Field(default_factory=list, description="methods still to compile")
+    current: str | None = Field(
+        None, description="the method being compiled now (the first pending one)"
+    )
     elapsed_s: float | None = Field(None, description="seconds since the warm-up started")
     pid: int | None = Field(None, description="the warm-up process while it runs")
     error: str | None = None
@@ -131,6 +134,7 @@ class KernelWarmup:
         with self._lock:
             st = self._status.model_copy(deep=True)
         if st.state == "compiling":
+            st.current = st.pending[0] if st.pending else None
             st.elapsed_s = time.monotonic() - self._t0
             st.pid = self._proc.pid if self._proc is not None else None
         return st

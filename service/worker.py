@@ -21,6 +21,7 @@ made (in the web process) and is applied as is.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import multiprocessing as mp
@@ -35,7 +36,7 @@ from typing import Any, Literal, NamedTuple
 
 from cfsr.layout import Layout
 from service.config import WorkerConfig
-from service.status import RateMeter, WorkerReport, WorkerStatus
+from service.status import QualityShare, RateMeter, WorkerReport, WorkerStatus
 from shm.frameslot import FrameSlot
 
 __all__ = [
@@ -130,8 +131,48 @@ class ConfigAck(NamedTuple):
 # ----------------------------------------------------------------------------------------------
 # worker process
 # ----------------------------------------------------------------------------------------------
+class _Task(NamedTuple):
+    """A frame handed to the pool: its step, when its newest spike arrived, the tier, and
+    the config version it was computed under."""
+
+    step: int
+    arrival: float
+    quality: str
+    version: int
+    submitted: float
+
+
+#: a frame whose newest spike arrived longer ago than this is not shown (counted late)
+LATE_S = 1.0
+#: seconds the first frame under a config may be pending before the worker shows frames of a
+#: ready method (TFP) meanwhile: on a first use that frame waits on numba's compiler
+FALLBACK_AFTER_S = 1.0
+#: a pool task pending longer than this is taken for a hang (the first under a config: a
+#: compile, allowed the supervisor's compile timeout)
+TASK_HANG_S = 120.0
+
+
 class _Worker:
-    def __init__(self, slot_path: str, config: WorkerConfig, evt_q: Any) -> None:
+    """The worker process's state: the ring reader, the streaming buffer, and the pool of
+    processes that reconstruct (:class:`cfsr.pool.FramePool`).
+
+    The loop ingests ring blocks into the buffer, hands the newest computable step to an idle
+    pool process whenever ``max_fps`` allows, and publishes finished frames in step order:
+    a result older than one already shown is dropped (``dropped_order``), one whose spikes
+    arrived more than :data:`LATE_S` ago, or computed under a replaced config, too
+    (``dropped_late``). With ``workers`` processes several frames are computed at once, each
+    on a different step, so the rate is up to ``workers`` times one process's.
+
+    CFSR's ``quality = auto`` (the live default) picks a tier per frame: ``full`` while the
+    measured cost of a full frame lets the pool keep ``max_fps``, else as many ``full``
+    frames as the rate allows and ``fast`` ones between them.
+    """
+
+    def __init__(
+        self, slot_path: str, config: WorkerConfig, evt_q: Any, workers: int = 1,
+        threads: int = 1,
+    ) -> None:
+        from cfsr.pool import FramePool
         from shm.frameslot import STAT_FIELDS
 
         self.slot = FrameSlot.attach(slot_path)
@@ -149,17 +190,36 @@ class _Worker:
         self.st[self.ix["started"]] = time.monotonic()
         self._lost_base = self._overrun_base = self._torn_base = self._gaps_base = 0
         self._skip_base = 0
-        self._last_out_step: int | None = None
         self._next_out = 0.0
         self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
-        self._first_pending = True  # the first frame under the current config is to come
         self.slow_first = 0.0  # test hook (Inject "slow_first")
+        self.pool = FramePool(workers, threads)
+        self.put("workers", self.pool.workers)
+        self.put("threads", self.pool.threads)
+        self._tasks: dict[int, _Task] = {}
+        self._tag = 0
+        self._tiers: dict[str, Any] = {}
+        self._reset_output()
+
+    def _reset_output(self) -> None:
+        """Forget what was submitted and shown under the previous config."""
+        self._last_submit: int | None = None
+        self._last_shown: int | None = None
+        self._first_since: float | None = None  # first task under this config submitted at
+        self._first_pending = True
+        self._fallback_next = 0.0
+        self._ema: dict[str, float] = {}
+        self._credit = 0.0
+        self.put("fallback", 0.0)
 
     def bump(self, name: str, by: float = 1.0) -> None:
         self.st[self.ix[name]] += by
 
     def put(self, name: str, value: float) -> None:
         self.st[self.ix[name]] = value
+
+    def close(self) -> None:
+        self.pool.close()
 
     # -- configuration ------------------------------------------------------------------------
     def attach(self, ring_path: str, layout: Layout) -> None:
@@ -181,24 +241,27 @@ class _Worker:
     def _build(self, cfg: WorkerConfig | None = None) -> None:
         """Make the reconstructor run ``cfg`` (default: the current config), all or nothing.
 
-        The new reconstructor state is built completely before it replaces the running one
-        (:meth:`StreamingReconstructor.set_method` is itself atomic); on any failure this
-        raises with the old configuration and reconstructor untouched. On success the config
-        becomes current and its version is acknowledged to the supervisor.
+        The new state is built completely before it replaces the running one
+        (:meth:`StreamingReconstructor.set_method` is itself atomic; the buffer holds the
+        longest window of the config's tiers); on any failure this raises with the old
+        configuration and reconstructor untouched. On success the config becomes current and
+        its version is acknowledged to the supervisor.
         """
         from cfsr.streaming import StreamingReconstructor
 
         cfg = self.config if cfg is None else cfg
+        tiers = _tiers(cfg)
+        widest = max(tiers.values(), key=lambda m: sum(m.window))
         if self.rec is None or self.rec.layout != self.layout:
-            rec = StreamingReconstructor(cfg.method, self.layout, slack=1024)
+            rec = StreamingReconstructor(widest, self.layout, slack=1024)
             if self.rec is not None:
                 self._gaps_base += self.rec.gaps
             self.rec = rec
         else:
-            self.rec.set_method(cfg.method)
+            self.rec.set_method(widest)
         self.config = cfg
-        self._last_out_step = None
-        self._first_pending = True
+        self._tiers = tiers
+        self._reset_output()
         self.put("config_version", cfg.version)
         self.evt_q.put(ConfigAnswer(cfg.version, applied=True))
 
@@ -267,53 +330,192 @@ class _Worker:
                 return t
         return self._arrival[-1][1] if self._arrival else time.monotonic()
 
-    def maybe_output(self) -> bool:
+    def _quality(self) -> str:
+        """The tier of the next frame (:class:`_Worker`'s auto rule)."""
+        if len(self._tiers) < 2:
+            return next(iter(self._tiers))
+        full, fast = self._ema.get("full"), self._ema.get("fast")
+        if full is None:
+            return "full"
+        # seconds of pool time one frame may take for the pool to keep max_fps
+        budget = self.pool.workers / self.config.max_fps
+        if full <= budget:
+            return "full"
+        if fast is None:
+            return "fast"
+        # the share of full frames that keeps the mean cost within the budget, spread evenly
+        share = 0.0 if full <= fast else min(1.0, max(0.0, (budget - fast) / (full - fast)))
+        self._credit += share
+        if self._credit >= 1.0:
+            self._credit -= 1.0
+            return "full"
+        return "fast"
+
+    def _submit(self) -> bool:
+        """Hand the newest computable step to an idle pool process, if the pace allows."""
         rec = self.rec
-        if rec is None:
-            return False
         now = time.monotonic()
-        if now < self._next_out:
+        if rec is None or now < self._next_out or not self.pool.idle:
             return False
         t = rec.latest_step()
-        if t is None or t == self._last_out_step:
+        if t is None or (self._last_submit is not None and t <= self._last_submit):
             return False
+        quality = self._quality()
+        cfg = self._tiers[quality]
+        before, after = cfg.window
+        a = max(rec.first_step, t - before)
+        b = min(rec.next_step, t + after + 1)
+        self._tag += 1
+        tag = self._tag
+        arrival = self._arrival_of(t + rec.after)
+        delay = 0.0
+        if self._first_pending and self._first_since is None:
+            self._first_since = now
+            self.put("first_frame_since", now)
+            delay, self.slow_first = self.slow_first, 0.0  # test hook: a compile's wait
+        self.pool.submit(tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)], delay=delay)
+        self._tasks[tag] = _Task(t, arrival, quality, self.config.version, now)
+        self._last_submit = t
+        self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
+        return True
+
+    def _collect(self) -> bool:
+        """Publish the results that are in, in step order; True when one was shown."""
+        from cfsr.pool import TaskError
+
+        shown = False
+        while self._tasks:
+            try:
+                r = self.pool.collect(timeout=0)
+            except TaskError as exc:  # this frame failed; the process takes the next one
+                self._tasks.pop(exc.tag, None)
+                raise
+            if r is None:
+                break
+            task = self._tasks.pop(r.tag)
+            (t, out), ms = r.outputs[0], r.compute_ms[0]
+            self._ema[task.quality] = (
+                ms if task.quality not in self._ema else 0.8 * self._ema[task.quality] + 0.2 * ms
+            ) if ms > 0 else self._ema.get(task.quality, 0.0)
+            if task.version != self.config.version:
+                self.bump("dropped_late")  # computed under a config since replaced
+                continue
+            if self._first_pending:
+                self._first_pending = False
+                self.put("first_frame_since", 0.0)
+                self.put("fallback", 0.0)
+            if self._last_shown is not None and t <= self._last_shown:
+                self.bump("dropped_order")
+                continue
+            if time.monotonic() - task.arrival > LATE_S:
+                self.bump("dropped_late")
+                continue
+            self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms)
+            self.bump("q_" + task.quality)
+            shown = True
+        self._check_hangs()
+        return shown
+
+    def _check_hangs(self) -> None:
+        now = time.monotonic()
+        for task in self._tasks.values():
+            first = self._first_pending and task.version == self.config.version
+            if not first and now - task.submitted > TASK_HANG_S:
+                raise RuntimeError(
+                    f"a pool process has computed step {task.step} for "
+                    f"{now - task.submitted:.0f} s: taken for a hang"
+                )
+
+    def _fallback(self) -> bool:
+        """While the first frame under the config waits (on a first use: on numba's
+        compiler), show TFP frames, computed here, so the image does not freeze."""
+        rec = self.rec
+        if (
+            rec is None
+            or not self._first_pending
+            or self._first_since is None
+            or self.config.method.method == "tfp"
+        ):
+            return False
+        now = time.monotonic()
+        if now - self._first_since < FALLBACK_AFTER_S or now < self._fallback_next:
+            return False
+        t = rec.latest_step()
+        if t is None or (self._last_shown is not None and t <= self._last_shown):
+            return False
+        from cfsr.methods.registry import get_method
+
+        tfp = get_method("tfp")
+        fb = _fallback_config()
+        before, after = fb.window
+        t0 = time.perf_counter()
+        out = tfp.run_window(
+            rec, max(rec.first_step, t - before), min(rec.next_step, t + after + 1), t,
+            fb.params,
+        )
+        ms = (time.perf_counter() - t0) * 1e3
+        self.put("fallback", 1.0)
+        self._publish(t, out, "tfp", self._arrival_of(t), ms)
+        self.bump("fallback_frames")
+        self._fallback_next = now + 1.0 / self.config.max_fps
+        return True
+
+    def _publish(self, t: int, out: Any, method: str, arrival: float, compute_ms: float) -> None:
         from cfsr.display import to_display
 
-        t0 = time.perf_counter()
-        if self._first_pending:
-            self.put("first_frame_since", time.monotonic())
-            if self.slow_first:  # test hook: a first frame that waits as on a compiler
-                time.sleep(self.slow_first)
-                self.slow_first = 0.0
-        out = rec.compute(t)
-        self._first_pending = False
-        self.put("first_frame_since", 0.0)
         gain = self.config.gain
         g = float(gain) if gain else _auto_gain(out.rate)
         img = to_display(out.rate, g)
-        compute_ms = (time.perf_counter() - t0) * 1e3
-        arrival = self._arrival_of(t + rec.after)
         latency_ms = (time.monotonic() - arrival) * 1e3
         self.slot.publish(
             step=t,
             image=img,
             masks=out.masks,
-            method=rec.method.name,
+            method=method,
             gain=g,
             t_arrival=arrival,
             compute_ms=compute_ms,
             latency_ms=latency_ms,
         )
-        self._last_out_step = t
+        self._last_shown = t
         self.bump("frames_out")
         a = 0.2
         ix = self.ix
         for name, v in (("compute_ms", compute_ms), ("latency_ms", latency_ms)):
             old = self.st[ix[name]]
             self.st[ix[name]] = v if old == 0 else (1 - a) * old + a * v
-        fps = self.config.max_fps
-        self._next_out = max(now + 1.0 / fps, time.monotonic() + 0.0)
-        return True
+
+    def maybe_output(self) -> bool:
+        """One round of output: collect and publish, submit the next step, or show a
+        fallback frame while the first one waits; True when something happened."""
+        shown = self._collect()
+        submitted = self._submit()
+        fell_back = self._fallback()
+        return shown or submitted or fell_back
+
+
+def _tiers(cfg: WorkerConfig) -> dict[str, Any]:
+    """The method configs a worker config runs, by tier: the config as given under its own
+    ``quality`` (``full`` for a method without one), or for a method with a ``quality``
+    parameter (CFSR) under ``quality = auto``, its ``full`` and ``fast`` tiers."""
+    m = cfg.method
+    if "quality" not in m.params:
+        return {"full": m}
+    if cfg.quality != "auto":
+        return {str(m.params["quality"]): m}
+    return {
+        "full": m.replace(params={"quality": "full"}),
+        "fast": m.replace(params={"quality": "fast"}),
+    }
+
+
+@functools.cache
+def _fallback_config() -> Any:
+    """The method shown while the first frame under a config compiles: TFP (cheap, and the
+    first a warm-up compiles)."""
+    from cfsr.config import MethodConfig
+
+    return MethodConfig("tfp")
 
 
 def _auto_gain(rate) -> float:
@@ -329,8 +531,12 @@ def worker_main(
     config: WorkerConfig,
     cmd_q: Any,
     evt_q: Any,
+    workers: int = 1,
+    threads: int = 1,
 ) -> None:
-    """Entry point of the worker process (spawned by :class:`WorkerSupervisor`)."""
+    """Entry point of the worker process (spawned by :class:`WorkerSupervisor`): the loop
+    over ring blocks, commands and frames, and ``workers`` pool processes of ``threads``
+    threads that reconstruct."""
     import signal
 
     from cfsr._heap import keep_freed_memory
@@ -338,8 +544,16 @@ def worker_main(
     # Ctrl+C reaches the whole process group: the supervisor stops us, not the signal.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     keep_freed_memory()  # frames reuse the last frame's large arrays (no page faults)
+    from cfsr.pool import PoolError, TaskError
+
+    # We are a daemon of the web process (ended with it), and multiprocessing forbids a
+    # daemon children of its own; our pool's processes are daemons of ours and also leave by
+    # themselves within a second of our end (cfsr.pool checks its parent), so nothing lingers.
+    mp.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
+
+    w: _Worker | None = None
     try:
-        w = _Worker(slot_path, config, evt_q)
+        w = _Worker(slot_path, config, evt_q, workers, threads)
         w.attach(ring_path, layout)
         evt_q.put(Ready(os.getpid()))
         consecutive_errors = 0
@@ -373,6 +587,14 @@ def worker_main(
                 pushed = w.ingest()
                 produced = w.maybe_output()
                 consecutive_errors = 0
+            except PoolError as exc:
+                if not isinstance(exc, TaskError):
+                    raise  # a pool process died: the supervisor restarts us, pool and all
+                consecutive_errors += 1
+                w.bump("errors")
+                evt_q.put(WorkerError(str(exc)))
+                time.sleep(min(1.0, 0.05 * consecutive_errors))
+                continue
             except Exception as exc:  # noqa: BLE001 - a method failure must not kill the worker
                 consecutive_errors += 1
                 w.bump("errors")
@@ -387,6 +609,9 @@ def worker_main(
             time.sleep(0.1)
         finally:
             raise
+    finally:
+        if w is not None:
+            w.close()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -417,8 +642,14 @@ class WorkerSupervisor:
         *,
         hang_timeout: float = 120.0,
         compile_timeout: float = 900.0,
+        workers: int = 1,
+        threads: int = 1,
     ) -> None:
+        if int(workers) < 1 or int(threads) < 1:
+            raise ValueError(f"workers and threads must be >= 1, got {workers} x {threads}")
         self.slot = slot
+        #: reconstruction processes, and numba/OpenCV threads in each
+        self.workers, self.threads = int(workers), int(threads)
         #: the configuration asked for (the newest sent, or the last confirmed after a
         #: rejection): what a restarted worker starts with
         self.config = config
@@ -470,6 +701,8 @@ class WorkerSupervisor:
                     self.config,
                     self._cmd_q,
                     self._evt_q,
+                    self.workers,
+                    self.threads,
                 ),
                 name="cfsr-worker",
                 daemon=True,
@@ -664,7 +897,8 @@ class WorkerSupervisor:
         """Keep cumulative counters across restarts (the new worker starts from zero)."""
         st = self.slot.stats()
         for k in ("frames_out", "steps_ingested", "worker_skip_frames", "ring_lost_frames",
-                  "ring_overruns", "ring_torn", "gaps", "errors"):
+                  "ring_overruns", "ring_torn", "gaps", "errors", "q_full", "q_fast",
+                  "dropped_late", "dropped_order", "fallback_frames"):
             self._counter_base[k] = self._counter_base.get(k, 0.0) + st.get(k, 0.0)
         self.slot.stats_array()[:] = 0
 
@@ -706,6 +940,18 @@ class WorkerSupervisor:
                 real_time_factor=steps_per_s / rate_hz if rate_hz else 0.0,
                 frames_out=int(st.get("frames_out", 0)),
                 gaps=int(st.get("gaps", 0)),
+                workers=self.workers,
+                threads_per_worker=self.threads,
+                quality=QualityShare(
+                    mode=self.config.quality if "quality" in self.config.method.params
+                    else None,
+                    full=int(st.get("q_full", 0)),
+                    fast=int(st.get("q_fast", 0)),
+                ),
+                dropped_late=int(st.get("dropped_late", 0)),
+                dropped_order=int(st.get("dropped_order", 0)),
+                fallback_method="tfp" if st.get("fallback", 0) and first else None,
+                fallback_frames=int(st.get("fallback_frames", 0)),
             ),
             latency_ms=float(st.get("latency_ms", 0.0)),
             compute_ms=float(st.get("compute_ms", 0.0)),

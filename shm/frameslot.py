@@ -55,6 +55,14 @@ STAT_FIELDS = (
     # time.monotonic() when the first frame under the current config began computing, 0 when
     # none is pending: on a machine's first use that frame waits on numba's compiler
     "first_frame_since",
+    "workers",  # reconstruction processes in the worker's pool
+    "threads",  # numba/OpenCV threads per process
+    "q_full",  # frames shown at CFSR's full quality tier (every frame of other methods)
+    "q_fast",  # frames shown at CFSR's fast tier
+    "dropped_late",  # frames computed but not shown: too late, or under a replaced config
+    "dropped_order",  # frames computed but not shown: a newer step was shown first
+    "fallback",  # 1 while TFP frames stand in for a first frame that is compiling
+    "fallback_frames",  # TFP frames shown that way
 )
 
 

@@ -1,0 +1,455 @@
+"""Several reconstructions at once: a pool of processes, each on its own output steps.
+
+One CFSR frame keeps both cores of a small machine only partly busy (the second numba thread
+adds 1.47x, not 2x: much of a frame is serial Python, OpenCV's MOG and short parallel
+kernels), so frames run faster side by side than one after the other on all threads. A
+:class:`FramePool` holds ``workers`` processes of ``threads`` numba/OpenCV threads each; the
+caller hands it a window of packed frames and the steps to reconstruct in it (a *task*), and
+gets the :class:`~cfsr.methods.registry.Output` back, in the order it asks for them.
+
+Both users of the pool go through it, so both get the same numbers as one process:
+
+* the live worker (``service.worker``) copies the window of its newest step out of its
+  streaming buffer into a free process's region and publishes the results in step order;
+* :func:`pool_outputs` (behind :func:`cfsr.reconstruct` and ``cfsr reconstruct``) cuts a
+  recording's output steps into groups and runs each group in one process.
+
+A task's output is computed by :meth:`Method.run_window` on exactly the bytes and window
+bounds the single-process path uses (a reconstruction is a pure function of its window, its
+parameters and its first step), so a frame is the same whichever process computes it; the
+tests check that bit for bit.
+
+Transport: each process has its own region of shared memory (a file in ``/dev/shm``, or the
+temporary folder where there is none) into which the caller copies the task's packed frames
+(12.9 MB for a default CFSR frame of a 400 x 250 sensor, about 2 ms); the file is unlinked as
+soon as the process has mapped it, so nothing is left behind whatever way the processes end.
+Results (rates and masks, 0.5 MB a frame) come back pickled on one queue.
+"""
+
+from __future__ import annotations
+
+import mmap
+import multiprocessing as mp
+import os
+import queue
+import tempfile
+import threading
+import time
+import traceback
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cfsr.config import MethodConfig
+from cfsr.layout import Layout
+from cfsr.methods.registry import Output
+
+__all__ = [
+    "FramePool",
+    "PoolError",
+    "PoolResult",
+    "TaskError",
+    "default_workers",
+    "pool_outputs",
+]
+
+#: how long a process waits for a task before it checks that its parent still lives (s)
+_PARENT_CHECK_S = 1.0
+
+
+class PoolError(RuntimeError):
+    """A pool process failed: it died, or did not start."""
+
+
+class TaskError(PoolError):
+    """A task's reconstruction raised in its process (the message carries the traceback);
+    the process goes on with the next task. ``tag`` is the task's."""
+
+    def __init__(self, tag: Any, message: str) -> None:
+        super().__init__(message)
+        self.tag = tag
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def default_workers(threads: int = 1) -> int:
+    """Processes of ``threads`` threads each that the usable cores allow (at least 1)."""
+    return max(1, usable_cores() // max(1, int(threads)))
+
+
+@dataclass(frozen=True)
+class PoolResult:
+    """The answer to one task: its ``tag``, the ``(t, Output)`` of each step asked for, in
+    order, and the wall time each took in the process (ms, per step)."""
+
+    tag: Any
+    outputs: list[tuple[int, Output]]
+    compute_ms: list[float]
+    worker: int
+
+
+@dataclass(frozen=True)
+class _Task:
+    tag: Any
+    config: MethodConfig
+    layout: Layout
+    start: int  # absolute step of the region's first frame
+    n_frames: int  # frames in the region
+    spans: tuple[tuple[int, int, int], ...]  # (a, b, t) per output, absolute steps
+    carry: bool  # one memo for the task's outputs (carried work), else a fresh one each
+    delay: float = 0.0  # test hook: seconds to wait first (as a compile does)
+
+
+class _RegionView:
+    """What :meth:`Method.run_window` reads: ``packed``/``frames``/``layout`` over the region."""
+
+    def __init__(self, frames: np.ndarray, start: int, layout: Layout) -> None:
+        self._frames, self._start, self.layout = frames, start, layout
+
+    def packed(self, a: int, b: int) -> np.ndarray:
+        return self._frames[a - self._start : b - self._start]
+
+    def frames(self, a: int, b: int) -> np.ndarray:
+        from cfsr._bits import unpack_layout
+
+        return unpack_layout(self.packed(a, b), self.layout)
+
+
+def _limit_threads(threads: int) -> None:
+    """Run this process's numba kernels and OpenCV on ``threads`` threads."""
+    import numba
+
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    try:
+        import cv2
+
+        cv2.setNumThreads(int(threads))
+    except ImportError:  # pragma: no cover - OpenCV is a base dependency
+        pass
+
+
+def _pool_main(
+    index: int, path: str, size: int, threads: int, task_q: Any, result_q: Any, parent: int
+) -> None:
+    """Entry point of a pool process: map the region, answer tasks until told to stop."""
+    import signal
+
+    from cfsr._heap import keep_freed_memory
+
+    # Ctrl+C reaches the whole process group: the pool's owner stops us, not the signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    keep_freed_memory()
+    _limit_threads(threads)
+    fd = os.open(path, os.O_RDWR)
+    try:
+        region = mmap.mmap(fd, size)
+    finally:
+        os.close(fd)
+    result_q.put(("ready", index, os.getpid()))
+    buf = np.frombuffer(region, np.uint8)
+    while True:
+        try:
+            task = task_q.get(timeout=_PARENT_CHECK_S)
+        except queue.Empty:
+            if os.getppid() != parent:
+                return  # the owner died without stopping us: do not linger
+            continue
+        if task is None:
+            return
+        try:
+            if task.delay:
+                time.sleep(task.delay)
+            m = task.config.spec
+            fb = task.layout.frame_bytes
+            frames = buf[: task.n_frames * fb].reshape(task.n_frames, fb)
+            view = _RegionView(frames, task.start, task.layout)
+            memo: dict[str, Any] = {}
+            outs, ms = [], []
+            for a, b, t in task.spans:
+                t0 = time.perf_counter()
+                if not task.carry:
+                    memo = {}
+                outs.append((t, m.run_window(view, a, b, t, task.config.params, memo)))
+                ms.append((time.perf_counter() - t0) * 1e3)
+            result_q.put(("done", index, PoolResult(task.tag, outs, ms, index)))
+        except Exception as exc:  # noqa: BLE001 - reported to the owner, which decides
+            msg = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
+            result_q.put(("error", index, (task.tag, msg)))
+
+
+def _shm_folder() -> str:
+    return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+
+
+class FramePool:
+    """``workers`` processes of ``threads`` threads, each reconstructing the tasks it is given.
+
+    Parameters
+    ----------
+    workers : int, optional
+        Processes (default :func:`default_workers`: the usable cores / ``threads``).
+    threads : int
+        numba and OpenCV threads per process.
+    region_bytes : int
+        Bytes of packed frames one task may carry (the window of its outputs). The region is
+        a sparse file: only the bytes a task writes take memory. A larger task restarts the
+        pool with a region that fits it.
+
+    Use it as a context manager, or call :meth:`close`. Not thread-safe: one owner submits
+    and collects.
+    """
+
+    def __init__(
+        self, workers: int | None = None, threads: int = 1, *, region_bytes: int = 64 << 20
+    ) -> None:
+        self.threads = max(1, int(threads))
+        self.workers = default_workers(self.threads) if workers is None else int(workers)
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {workers}")
+        self.region_bytes = int(region_bytes)
+        self._ctx = mp.get_context("spawn")
+        self._procs: list[Any] = []
+        self._task_qs: list[Any] = []
+        self._regions: list[np.ndarray] = []
+        self._maps: list[mmap.mmap] = []
+        self._busy: dict[int, Any] = {}  # worker -> tag of the task it runs
+        self._result_q: Any = None
+        self._lock = threading.Lock()
+        self._start()
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def _start(self) -> None:
+        folder = _shm_folder()
+        self._result_q = self._ctx.Queue()
+        paths = []
+        try:
+            for k in range(self.workers):
+                fd, path = tempfile.mkstemp(prefix=f"cfsr-pool-{os.getpid()}-{k}-", dir=folder)
+                try:
+                    os.ftruncate(fd, self.region_bytes)
+                    mm = mmap.mmap(fd, self.region_bytes)
+                finally:
+                    os.close(fd)
+                paths.append(path)
+                self._maps.append(mm)
+                self._regions.append(np.frombuffer(mm, np.uint8))
+                tq = self._ctx.Queue()
+                self._task_qs.append(tq)
+                p = self._ctx.Process(
+                    target=_pool_main,
+                    args=(k, path, self.region_bytes, self.threads, tq, self._result_q,
+                          os.getpid()),
+                    name=f"cfsr-pool-{k}",
+                    daemon=True,
+                )
+                p.start()
+                self._procs.append(p)
+            self.pids = [0] * self.workers
+            waiting = set(range(self.workers))
+            end = time.monotonic() + 120.0
+            while waiting:
+                try:
+                    kind, k, pid = self._result_q.get(timeout=0.2)
+                except queue.Empty:
+                    self._check_alive()
+                    if time.monotonic() > end:
+                        raise PoolError("pool processes did not start within 120 s") from None
+                    continue
+                if kind == "ready":
+                    self.pids[k] = pid
+                    waiting.discard(k)
+        except BaseException:
+            self.close()
+            raise
+        finally:
+            for path in paths:  # mapped by both sides now (or failed): nothing to leave behind
+                try:
+                    os.unlink(path)
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        """Stop the processes and release the regions (idempotent)."""
+        for q in self._task_qs:
+            try:
+                q.put(None)
+            except (OSError, ValueError):
+                pass
+        for p in self._procs:
+            p.join(3)
+            if p.is_alive():
+                p.terminate()
+                p.join(2)
+        for q in [*self._task_qs, self._result_q]:
+            if q is not None:
+                q.cancel_join_thread()
+                q.close()
+        self._regions.clear()
+        for mm in self._maps:
+            try:
+                mm.close()
+            except BufferError:  # a view still alive: the mapping goes with the process
+                pass
+        self._procs, self._task_qs, self._maps, self._busy = [], [], [], {}
+        self._result_q = None
+
+    def __enter__(self) -> FramePool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _check_alive(self) -> None:
+        for k, p in enumerate(self._procs):
+            if not p.is_alive():
+                raise PoolError(f"pool process {k} (pid {p.pid}) exited with code {p.exitcode}")
+
+    def _grow(self, nbytes: int) -> None:
+        busy = dict(self._busy)
+        if busy:
+            raise PoolError("cannot grow the pool's regions while tasks run")
+        self.close()
+        self.region_bytes = max(nbytes, 2 * self.region_bytes)
+        self._start()
+
+    # -- tasks -------------------------------------------------------------------------------
+    @property
+    def idle(self) -> list[int]:
+        """Processes without a task."""
+        return [k for k in range(self.workers) if k not in self._busy]
+
+    @property
+    def pending(self) -> int:
+        """Tasks submitted and not collected."""
+        return len(self._busy)
+
+    def submit(
+        self,
+        tag: Any,
+        config: MethodConfig,
+        layout: Layout,
+        packed: np.ndarray,
+        start: int,
+        spans: Sequence[tuple[int, int, int]],
+        *,
+        carry: bool = False,
+        delay: float = 0.0,
+    ) -> int:
+        """Give an idle process the frames ``packed`` (``(n, frame_bytes)`` uint8, the first
+        being step ``start``) and the outputs ``spans`` = ``(a, b, t)``: step ``t`` from
+        frames ``[a, b)``, all inside the given frames. ``carry``: the outputs share one memo
+        (carried work), else each starts from nothing. Returns the process's index; raises
+        PoolError when none is idle."""
+        idle = self.idle
+        if not idle:
+            raise PoolError("no idle pool process")
+        packed = np.asarray(packed, np.uint8)
+        if packed.ndim != 2 or packed.shape[1] != layout.frame_bytes:
+            raise ValueError(f"packed frames must be (n, {layout.frame_bytes}), got {packed.shape}")
+        n = len(packed)
+        for a, b, t in spans:
+            if not (start <= a <= t < b <= start + n):
+                raise ValueError(f"output {t} from [{a}, {b}) is outside frames "
+                                 f"[{start}, {start + n})")
+        if packed.nbytes > self.region_bytes:
+            self._grow(packed.nbytes)
+            idle = self.idle
+        k = idle[0]
+        self._regions[k][: packed.nbytes].reshape(packed.shape)[:] = packed
+        self._busy[k] = tag
+        self._task_qs[k].put(
+            _Task(tag, config, layout, int(start), n, tuple(map(tuple, spans)), bool(carry),
+                  float(delay))
+        )
+        return k
+
+    def collect(self, timeout: float | None = None) -> PoolResult | None:
+        """The next finished task (any order), or None after ``timeout`` seconds (None: wait
+        as long as it takes). Raises PoolError when a task failed or a process died."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            wait = 0.2 if end is None else max(0.0, min(0.2, end - time.monotonic()))
+            try:
+                kind, k, payload = self._result_q.get(timeout=wait)
+            except queue.Empty:
+                self._check_alive()
+                if end is not None and time.monotonic() >= end:
+                    return None
+                continue
+            if kind == "done":
+                self._busy.pop(k, None)
+                return payload
+            if kind == "error":
+                self._busy.pop(k, None)
+                tag, msg = payload
+                raise TaskError(tag, f"reconstruction of task {tag!r} failed in pool "
+                                f"process {k}: {msg}")
+
+
+# ----------------------------------------------------------------------------------------------
+# offline: a recording's output steps, group by group
+# ----------------------------------------------------------------------------------------------
+def pool_outputs(
+    recording: Any,
+    config: MethodConfig,
+    groups: Iterable[Sequence[int]],
+    *,
+    workers: int | None = None,
+    threads: int = 1,
+    carry: bool = False,
+    pool: FramePool | None = None,
+) -> Iterator[tuple[int, Output]]:
+    """Yield ``(t, Output)`` for every step of ``groups``, in the order given, computed on a
+    :class:`FramePool` (one group per task).
+
+    ``recording`` is anything with ``packed(a, b)``, ``n_frames`` and ``layout`` (a
+    :class:`~cfsr.spikes.SpikeRecording`). Each output's window is ``[t - before, t + after]``
+    clipped to the recording, as in :func:`cfsr.reconstruct`, so the numbers are the same as
+    one process's. With ``carry`` the outputs of a group continue one memo (carried work);
+    a group's first output always starts from nothing, so the result does not depend on the
+    number of processes.
+    """
+    before, after = config.window
+    n = int(recording.n_frames)
+    layout = recording.layout
+    tasks = []
+    for g in groups:
+        spans = [(max(0, t - before), min(n, t + after + 1), int(t)) for t in g]
+        if spans:
+            a0, b0 = min(s[0] for s in spans), max(s[1] for s in spans)
+            tasks.append((a0, b0, spans))
+    need = max((b - a for a, b, _ in tasks), default=0) * layout.frame_bytes
+    own = pool is None
+    if own:
+        want = max(1, min(default_workers(threads) if workers is None else workers, len(tasks)))
+        pool = FramePool(want, threads, region_bytes=max(need, 1 << 20))
+    assert pool is not None
+    if need > pool.region_bytes:
+        pool._grow(need)
+    try:
+        done: dict[int, PoolResult] = {}
+        nxt = 0  # next group to yield
+        sub = 0  # next group to submit
+        while nxt < len(tasks):
+            while sub < len(tasks) and pool.idle:
+                a0, b0, spans = tasks[sub]
+                pool.submit(sub, config, layout, recording.packed(a0, b0), a0, spans,
+                            carry=carry)
+                sub += 1
+            while nxt not in done:
+                r = pool.collect()
+                assert r is not None
+                done[r.tag] = r
+            yield from done.pop(nxt).outputs
+            nxt += 1
+    finally:
+        if own:
+            pool.close()
