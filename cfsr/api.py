@@ -31,19 +31,39 @@ def reconstruct_outputs(
     *,
     preset: str | None = None,
     params: Mapping[str, Any] | None = None,
+    workers: int | None = 1,
+    threads: int = 1,
 ) -> list[Output]:
-    """Like :func:`reconstruct` but returns :class:`Output` objects (rate plus masks)."""
+    """Like :func:`reconstruct` but returns :class:`Output` objects (rate plus masks).
+
+    ``workers``/``threads``: as in :func:`reconstruct` (default here: 1, this process).
+
+    The outputs are computed in increasing step, group by group
+    (:func:`cfsr.offline.carry_groups`): within a group a method may continue work from the
+    previous output (``memo``), so the numbers depend on the set of steps asked for, never
+    on their order, the number of processes or how the groups are spread over them.
+    """
+    from cfsr.config import MethodConfig
+    from cfsr.offline import carry_groups, stream_reconstruct
+
     rec = as_recording(spikes)
     m = get_method(method)
     p = resolve_params(m, params, preset)
+    ts = check_times(times, rec.n_frames)
+    if workers != 1:
+        got = dict(
+            stream_reconstruct(rec, m.name, ts, params=p, workers=workers, threads=threads)
+        )
+        return [got[t] for t in ts]
     before, after = m.window(p)
-    outs = []
-    memo: dict[str, Any] = {}  # recurrent methods continue a state from output to output
-    for t in check_times(times, rec.n_frames):
-        a = max(0, t - before)
-        b = min(rec.n_frames, t + after + 1)
-        outs.append(m.run_window(rec, a, b, t, p, memo))
-    return outs
+    got = {}
+    for group in carry_groups(MethodConfig(m.name, p), ts):
+        memo: dict[str, Any] = {}  # a group's outputs may continue work from one to the next
+        for t in group:
+            a = max(0, t - before)
+            b = min(rec.n_frames, t + after + 1)
+            got[t] = m.run_window(rec, a, b, t, p, memo)
+    return [got[t] for t in ts]
 
 
 def reconstruct(
@@ -53,6 +73,8 @@ def reconstruct(
     *,
     preset: str | None = None,
     return_masks: bool = False,
+    workers: int | None = None,
+    threads: int = 1,
     **params: Any,
 ):
     """Reconstruct images at the given steps.
@@ -69,6 +91,13 @@ def reconstruct(
         Named parameter set (e.g. ``"paper"``) applied before ``params``.
     return_masks : bool
         Also return a dict of stacked boolean masks ``(len(times), H, W)`` per mask name.
+    workers : int or None
+        Reconstruction processes (:class:`cfsr.pool.FramePool`), each on its own outputs.
+        None (default): this process, unless there are many outputs and the first ones cost
+        enough to pay for starting one process per core
+        (:func:`cfsr.offline.stream_reconstruct`). The numbers are the same in every case.
+    threads : int
+        numba/OpenCV threads in each of those processes.
     **params
         Method parameters (see ``cfsr.methods()[method]["params"]``).
 
@@ -85,7 +114,9 @@ def reconstruct(
     >>> cfsr.reconstruct(spikes.astype(np.uint8), "tfp", [50], window=40)[0, 0, 0]
     0.25
     """
-    outs = reconstruct_outputs(spikes, method, times, preset=preset, params=params)
+    outs = reconstruct_outputs(
+        spikes, method, times, preset=preset, params=params, workers=workers, threads=threads
+    )
     rates = np.stack([o.rate for o in outs]).astype(np.float32, copy=False)
     if not return_masks:
         return rates

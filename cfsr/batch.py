@@ -40,6 +40,10 @@ class ChunkTask:
     masks: bool = False
     gain: float | None = None
     read_kwargs: Mapping[str, Any] | None = None
+    #: reconstruction processes (:func:`cfsr.offline.stream_reconstruct`; None: decided by
+    #: the first group's cost) and threads in each
+    workers: int | None = 1
+    threads: int = 1
 
 
 def plan_chunks(times: Sequence[int], chunk_steps: int) -> list[tuple[int, ...]]:
@@ -69,8 +73,11 @@ def write_output(out_dir: Path, t: int, out: Any, gain: float | None, masks: boo
             Image.fromarray(mask.astype(np.uint8) * 255).save(out_dir / f"t{t}_mask_{name}.png")
 
 
-def run_chunk(task: ChunkTask, on_frame: Callable[[], None] | None = None) -> dict[str, Any]:
-    """Run one chunk (in this process or on a cluster worker); returns counts and timing."""
+def run_chunk(
+    task: ChunkTask, on_frame: Callable[[], None] | None = None, pool: Any = None
+) -> dict[str, Any]:
+    """Run one chunk (in this process or on a cluster worker), on ``pool`` (a running
+    :class:`~cfsr.pool.FramePool`) if given; returns counts and timing."""
     from cfsr.datfile import read_spikes
     from cfsr.offline import stream_reconstruct
 
@@ -81,7 +88,14 @@ def run_chunk(task: ChunkTask, on_frame: Callable[[], None] | None = None) -> di
     gain = task.gain if task.gain is not None else rec.gain
     n = 0
     for t, out in stream_reconstruct(
-        rec, task.method, task.times, params=task.params, preset=task.preset
+        rec,
+        task.method,
+        task.times,
+        params=task.params,
+        preset=task.preset,
+        workers=task.workers,
+        threads=task.threads,
+        pool=pool,
     ):
         write_output(out_dir, t, out, gain, task.masks)
         n += 1
@@ -122,12 +136,24 @@ def run_batch(
     results: list[dict[str, Any]] = []
     if cluster is None:
         tick = (lambda: progress(1)) if progress else None
-        return [run_chunk(task, tick) for task in tasks]
+        fixed = {(t.workers, t.threads) for t in tasks if t.workers not in (None, 1)}
+        if not fixed:
+            return [run_chunk(task, tick) for task in tasks]
+        from cfsr.pool import FramePool
+
+        (workers, threads), *_ = sorted(fixed)
+        with FramePool(workers, threads) as pool:  # one pool for every chunk
+            return [run_chunk(task, tick, pool) for task in tasks]
+    from dataclasses import replace
+
     from dask.distributed import as_completed
 
     client, local = dask_client(cluster)
     try:
-        futures = [client.submit(run_chunk, task, pure=False) for task in tasks]
+        # a Dask worker process is the unit of parallelism there: no pool inside it
+        futures = [
+            client.submit(run_chunk, replace(task, workers=1), pure=False) for task in tasks
+        ]
         for fut in as_completed(futures):
             r = fut.result()
             results.append(r)

@@ -23,6 +23,8 @@ __all__ = [
     "pareto_front",
     "plot_pareto",
     "method_fps",
+    "pool_fps",
+    "core_forecast",
     "method_scaling",
     "amdahl",
     "streaming_state_rtf",
@@ -216,6 +218,84 @@ def dense_output(
         "ms_per_frame": sec * 1e3,
         "isolated_ms_per_frame": iso,
         "speedup": iso / (sec * 1e3),
+    }
+
+
+def pool_fps(
+    packed: np.ndarray,
+    layout,
+    method: str,
+    *,
+    workers: int,
+    threads: int,
+    frames: int = 16,
+    params: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Isolated output frames per second of ``method`` through a
+    :class:`~cfsr.pool.FramePool` of ``workers`` processes of ``threads`` threads (the live
+    worker's and ``cfsr reconstruct``'s pool): ``frames`` outputs spread over ``packed``, each
+    from nothing, timed from the first submission to the last result after one warm-up frame
+    per process. Also the resident memory each process holds after the run (MB, Linux)."""
+    from cfsr.config import MethodConfig
+    from cfsr.pool import FramePool
+
+    cfg = MethodConfig(method, params)
+    before, after = cfg.window
+    n = len(packed)
+    lo, hi = before, n - after - 1
+    if hi < lo:
+        raise ValueError(f"{n} frames are too few for {method}'s window")
+    ts = np.linspace(lo, hi, frames + workers).astype(int).tolist()
+    spans = [(t - before, t + after + 1, t) for t in ts]
+    with FramePool(workers, threads, region_bytes=(before + after + 1) * layout.frame_bytes) as p:
+        for a, b, t in spans[:workers]:  # warm-up: kernels loaded, heaps grown
+            p.submit(t, cfg, layout, packed[a:b], a, [(a, b, t)])
+        while p.pending:
+            p.collect()
+        todo = list(spans[workers:])
+        t0 = time.perf_counter()
+        done = 0
+        while done < len(spans) - workers:
+            while todo and p.idle:
+                a, b, t = todo.pop(0)
+                p.submit(t, cfg, layout, packed[a:b], a, [(a, b, t)])
+            if p.collect() is not None:
+                done += 1
+        sec = time.perf_counter() - t0
+        rss = [_rss_mb(pid) for pid in p.pids]
+    fps = done / sec
+    return {
+        "workers": int(workers),
+        "threads": int(threads),
+        "fps": fps,
+        "ms_per_frame": 1e3 / fps,
+        "rss_mb_per_worker": float(np.median([r for r in rss if r])) if any(rss) else None,
+    }
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident memory of process ``pid`` in MB (0 where /proc cannot tell)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return 0.0
+
+
+def core_forecast(ms_1thread: float, measured: dict[str, Any], cores: Sequence[int]) -> dict:
+    """What machines of ``cores`` cores should expect of a pool of one single-threaded
+    process per core, from this machine's measurement: ``fps = cores * 1000 /
+    ms_1thread * efficiency``, the efficiency being the measured pool's fps over its
+    processes' fps had each run alone (what sharing memory bandwidth and caches costs here;
+    assumed to hold on the bigger machine, so a forecast, not a measurement)."""
+    w = int(measured["workers"]) * int(measured["threads"])
+    eff = measured["fps"] / (w * 1e3 / ms_1thread) if ms_1thread > 0 and w else float("nan")
+    return {
+        "efficiency": eff,
+        "fps": {int(c): c * 1e3 / ms_1thread * eff for c in cores},
     }
 
 

@@ -1,20 +1,29 @@
-"""Offline reconstruction of a recording through the streaming reconstructor.
+"""Offline reconstruction of a recording through the streaming reconstructor, or the pool.
 
 The CLI and batch tools use this, so offline results come from exactly the code the live
-worker runs: blocks of packed frames are pushed into a :class:`StreamingReconstructor`. Only
-the blocks that the requested times need are read, so sparse times in a long file cost little.
+worker runs: blocks of packed frames are pushed into a :class:`StreamingReconstructor`, or,
+when the work is worth several processes, the same windows go to a
+:class:`~cfsr.pool.FramePool` (the live worker's pool), one carry group per task. Both give
+the same numbers (a group's outputs depend only on its frames and its parameters). Only the
+blocks that the requested times need are read, so sparse times in a long file cost little.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
+from cfsr.config import MethodConfig
 from cfsr.methods.registry import Output
 from cfsr.spikes import SpikeRecording
 from cfsr.streaming import StreamingReconstructor
 
-__all__ = ["stream_reconstruct"]
+__all__ = ["carry_groups", "stream_reconstruct", "POOL_MIN_MS"]
+
+#: ``workers=None`` starts the pool only when the first group took at least this long per
+#: output (ms): below it, copying windows to the processes costs about what they save
+POOL_MIN_MS = 20.0
 
 
 def _spans(
@@ -32,6 +41,28 @@ def _spans(
     return spans
 
 
+def carry_groups(config: MethodConfig, times: Sequence[int]) -> list[list[int]]:
+    """Sorted, distinct ``times`` cut into the groups whose outputs may carry work from one to
+    the next (the method's ``carry_groups``; every output alone for a method without one).
+    A group's first output starts from nothing, so groups can run in any process."""
+    fn = getattr(config.spec, "carry_groups", None)
+    ts = sorted({int(t) for t in times})
+    if fn is None:
+        return [[t] for t in ts]
+    return [list(g) for g in fn(ts, config.params)]
+
+
+def _streamed(
+    rec: SpikeRecording, sr: StreamingReconstructor, times: Sequence[int], block: int
+) -> Iterator[tuple[int, Output]]:
+    for a, b, group in _spans(times, sr.before, sr.after, rec.n_frames):
+        sr.reset(a)
+        blocks = ((s, rec.packed(s, min(b, s + block))) for s in range(a, b, block))
+        # The span ends where the recording ends only if b == n; otherwise every window in the
+        # group is complete inside [a, b), so "final" never clips a window early.
+        yield from sr.run(blocks, group)
+
+
 def stream_reconstruct(
     rec: SpikeRecording,
     method: str,
@@ -40,20 +71,55 @@ def stream_reconstruct(
     params: Mapping[str, Any] | None = None,
     preset: str | None = None,
     block: int = 1024,
+    workers: int | None = 1,
+    threads: int = 1,
+    pool: Any = None,
 ) -> Iterator[tuple[int, Output]]:
     """Yield ``(t, Output)`` for each requested step, in increasing ``t``.
 
-    Blocks of ``block`` packed frames are read from ``rec`` (memory-mapped) and pushed through
-    one :class:`StreamingReconstructor`; spans between distant times are skipped.
+    Parameters
+    ----------
+    workers : int or None
+        1: in this process, blocks of ``block`` packed frames read from ``rec`` (memory-mapped)
+        and pushed through one :class:`StreamingReconstructor`, spans between distant times
+        skipped. N > 1: on a :class:`~cfsr.pool.FramePool` of N processes of ``threads``
+        threads, one carry group (:func:`carry_groups`) per task. None: the first group here,
+        timed; the pool (one process per usable core) for the rest when there are at least
+        two groups per process left and the first took :data:`POOL_MIN_MS` or more per
+        output. The outputs are the same in every case.
+    pool : FramePool, optional
+        A running pool to use (then ``workers`` and ``threads`` are ignored).
     """
+    from cfsr.pool import default_workers, pool_outputs
+
     ts = sorted({int(t) for t in times})
     bad = [t for t in ts if not 0 <= t < rec.n_frames]
     if bad:
         raise ValueError(f"times {bad} outside the recording (0..{rec.n_frames - 1} steps)")
-    sr = StreamingReconstructor(method, rec.layout, params=params, preset=preset, slack=block)
-    for a, b, group in _spans(ts, sr.before, sr.after, rec.n_frames):
-        sr.reset(a)
-        blocks = ((s, rec.packed(s, min(b, s + block))) for s in range(a, b, block))
-        # The span ends where the recording ends only if b == n; otherwise every window in the
-        # group is complete inside [a, b), so "final" never clips a window early.
-        yield from sr.run(blocks, group)
+    cfg = MethodConfig(method, params, preset)
+    if pool is not None:
+        yield from pool_outputs(rec, cfg, carry_groups(cfg, ts), pool=pool, carry=True)
+        return
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers == 1:
+        sr = StreamingReconstructor(cfg, rec.layout, slack=block)
+        yield from _streamed(rec, sr, ts, block)
+        return
+    groups = carry_groups(cfg, ts)
+    if workers is None:
+        n = default_workers(threads)
+        if n < 2 or len(groups) < 3 * n:
+            workers = 1
+        else:
+            sr = StreamingReconstructor(cfg, rec.layout, slack=block)
+            t0 = time.perf_counter()
+            yield from _streamed(rec, sr, groups[0], block)
+            per_output = (time.perf_counter() - t0) * 1e3 / len(groups[0])
+            groups = groups[1:]
+            workers = n if per_output >= POOL_MIN_MS else 1
+        if workers == 1:
+            sr = StreamingReconstructor(cfg, rec.layout, slack=block)
+            yield from _streamed(rec, sr, [t for g in groups for t in g], block)
+            return
+    yield from pool_outputs(rec, cfg, groups, workers=workers, threads=threads, carry=True)

@@ -287,15 +287,34 @@ SCALING_METHODS = ("tfp", "csr", "cfsr")
 #: as a slow-motion reconstruction asks for them (issue 14: dense output shares work).
 DENSE_OUTPUTS = (("tfstp", 1, 200), ("cfsr", 32, 8))
 
+#: Pool splits (processes x threads each) measured for CFSR: the same cores, used as one
+#: frame on every thread or as frames side by side.
+POOL_SPLITS = ((1, 1), (1, 2), (2, 1))
+
+#: Core counts the pool forecast is given for.
+FORECAST_CORES = (4, 8, 16)
+
 
 def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
-    from cfsr.bench import dense_output, method_fps, method_scaling, streaming_state_rtf
+    from cfsr.bench import (
+        core_forecast,
+        dense_output,
+        method_fps,
+        method_scaling,
+        pool_fps,
+        streaming_state_rtf,
+    )
     from cfsr.methods import methods
+    from cfsr.pool import usable_cores
 
     steps = 2048 if args.quick else 4096
     bar.set_description("simulating")
     packed, layout = _demo_packed(steps)
-    bar.reset(total=2 + len(methods()) + len(SCALING_METHODS) + len(DENSE_OUTPUTS))
+    cores = usable_cores()
+    splits = [(w, t) for w, t in POOL_SPLITS if w * t <= cores]
+    bar.reset(
+        total=2 + len(methods()) + len(SCALING_METHODS) + len(DENSE_OUTPUTS) + len(splits)
+    )
     bar.set_description("streaming state")
     rtf = {"streaming_state": streaming_state_rtf(packed, layout)}
     bar.update()
@@ -329,11 +348,27 @@ def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
             packed, layout, name, stride=stride, count=count, min_time=0.3 if args.quick else 1.0
         )
         bar.update()
+    pool: dict[str, Any] = {"method": "cfsr", "cores": cores, "splits": []}
+    for w, t in splits:
+        bar.set_description(f"pool cfsr {w}x{t}")
+        pool["splits"].append(
+            pool_fps(packed, layout, "cfsr", workers=w, threads=t, frames=8 if args.quick else 24)
+        )
+        bar.update()
+    one = next((r for r in pool["splits"] if r["workers"] == r["threads"] == 1), None)
+    best = max(pool["splits"], key=lambda r: r["fps"], default=None)
+    if one is not None and best is not None:
+        widest = max(
+            (r for r in pool["splits"] if r["threads"] == 1), key=lambda r: r["workers"]
+        )
+        pool["best"] = best
+        pool["forecast"] = core_forecast(one["ms_per_frame"], widest, FORECAST_CORES)
     return {
         "realtime_factor": rtf,
         "fps": fps,
         "scaling": scaling,
         "dense": dense,
+        "pool": pool,
         "acquisition": acq,
         "methods": detail,
         "goals": GOALS,
@@ -381,6 +416,23 @@ def _print_throughput(res: dict[str, Any]) -> None:
                 f"  p = {p:.2f}, {pred[8]:.1f}x / {pred[16]:.1f}x" if p is not None else ""
             )
             print(f"    {k:6s} {ms}{extra}")
+    pool = res.get("pool", {})
+    if pool.get("splits"):
+        print(f"  {pool['method']} frames side by side (pool: processes x threads each):")
+        for r in pool["splits"]:
+            mem = r.get("rss_mb_per_worker")
+            print(
+                f"    {r['workers']} x {r['threads']}: {r['fps']:6.1f} fps"
+                f" ({r['ms_per_frame']:6.1f} ms/frame)"
+                + (f", {mem:.0f} MB resident per process" if mem else "")
+            )
+        fc = pool.get("forecast")
+        if fc:
+            print(
+                f"    forecast, one process per core at this machine's efficiency "
+                f"({fc['efficiency']:.2f}): "
+                + ", ".join(f"{c} cores {v:.0f} fps" for c, v in fc["fps"].items())
+            )
     dense = res.get("dense", {})
     if dense:
         print("  dense output (one stream, outputs `stride` steps apart) against isolated frames:")

@@ -84,7 +84,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=40_000,
         help="output steps per chunk task (default 40000 = 1 s of recording)",
     )
+    p.add_argument(
+        "--workers",
+        type=_workers,
+        default=None,
+        help="reconstruction processes, each on its own frames (default 'auto': one per core "
+        "when the frames are costly enough to pay for starting them; same output either way)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="numba/OpenCV threads in each reconstruction process (default 1)",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def _workers(text: str) -> int | None:
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give a whole number or 'auto'") from None
+    if not 1 <= v <= 256:
+        raise argparse.ArgumentTypeError(f"{v} workers: give 1..256 or 'auto'")
+    return v
 
 
 def _inputs(path: Path) -> list[Path]:
@@ -145,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
                     args.masks,
                     args.gain,
                     _read_kwargs(args),
+                    args.workers,
+                    args.threads,
                 )
             )
     bar = tqdm(
@@ -193,7 +220,15 @@ def _video(args: argparse.Namespace, rec, method: str, times: list[int], params:
             file=sys.stderr,
             mininterval=0.5,
         ) as bar, first_frame_notice(bar, method, enabled=not args.quiet):
-            for _, out in stream_reconstruct(rec, method, times, params=params, preset=args.preset):
+            for _, out in stream_reconstruct(
+                rec,
+                method,
+                times,
+                params=params,
+                preset=args.preset,
+                workers=args.workers,
+                threads=args.threads,
+            ):
                 if gain is None:
                     # one gain for the whole video, so brightness does not flicker
                     gain = auto_gain(out.rate)

@@ -1,0 +1,143 @@
+"""The reconstruction pool (cfsr.pool): frames computed side by side in processes are the
+frames one process computes, bit for bit; a failing frame is reported and the pool goes on;
+a dead process is an error, not a hang; nothing is left in shared memory."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cfsr
+from cfsr.api import reconstruct_outputs
+from cfsr.cli import main
+from cfsr.config import MethodConfig
+from cfsr.methods.registry import get_method, resolve_params
+from cfsr.offline import carry_groups, stream_reconstruct
+from cfsr.pool import FramePool, PoolError, TaskError, pool_outputs
+from cfsr.simulate import simulate
+from cfsr.spikes import as_recording
+
+
+@pytest.fixture(scope="module")
+def disk():
+    """A small rotating disk: CFSR runs every stage on it (moving, static and still pixels)."""
+    sim = simulate("disk", steps=1600, height=64, width=96, seed=1)
+    return as_recording(sim.spikes)
+
+
+@pytest.fixture(scope="module")
+def pool():
+    with FramePool(2, 1) as p:
+        yield p
+
+
+def _same(a, b) -> None:
+    assert np.array_equal(a.rate, b.rate)
+    assert sorted(a.masks) == sorted(b.masks)
+    for k in a.masks:
+        assert np.array_equal(a.masks[k], b.masks[k]), k
+
+
+@pytest.mark.parametrize("method", ["cfsr", "csr", "tfp"])
+def test_pool_outputs_equal_one_process(disk, pool, method):
+    times = [30, 700, 760, 1100, 1599]  # clipped windows at both ends, and neighbours
+    ref = reconstruct_outputs(disk, method, times)
+    cfg = MethodConfig(method)
+    got = list(pool_outputs(disk, cfg, carry_groups(cfg, times), pool=pool, carry=True))
+    assert [t for t, _ in got] == sorted(times)
+    for (_, o), r in zip(got, ref, strict=True):
+        _same(o, r)
+
+
+def test_stream_and_library_entry_points_use_the_pool_with_the_same_numbers(disk):
+    times = list(range(500, 1500, 97))
+    one = dict(stream_reconstruct(disk, "cfsr", times, workers=1))
+    two = dict(stream_reconstruct(disk, "cfsr", times, workers=2))
+    assert sorted(one) == sorted(two) == times
+    for t in times:
+        _same(one[t], two[t])
+    # the library's front door, times in any order: the same as its one-process run
+    sub = times[::-1][:4]
+    assert np.array_equal(cfsr.reconstruct(disk, "cfsr", sub, workers=2),
+                          cfsr.reconstruct(disk, "cfsr", sub, workers=1))
+
+
+def test_a_failing_frame_is_a_task_error_and_the_process_goes_on(disk, pool):
+    good = MethodConfig("tfp")
+    bad = object.__new__(MethodConfig)  # skipped validation: its compute raises in the process
+    object.__setattr__(bad, "method", "tfp")
+    object.__setattr__(bad, "params", {**resolve_params(get_method("tfp")), "window": -5})
+    k = pool.submit("bad", bad, disk.layout, disk.packed(0, 200), 0, [(0, 200, 199)])
+    with pytest.raises(TaskError) as err:
+        pool.collect(timeout=60)
+    assert err.value.tag == "bad" and "Error" in str(err.value)
+    assert k in pool.idle
+    pool.submit("good", good, disk.layout, disk.packed(0, 200), 0, [(40, 200, 199)])
+    r = pool.collect(timeout=60)
+    assert r is not None and r.tag == "good"
+    _same(r.outputs[0][1], reconstruct_outputs(disk, "tfp", [199])[0])
+
+
+def test_submit_checks_its_spans(disk, pool):
+    with pytest.raises(ValueError, match="outside frames"):
+        pool.submit("x", MethodConfig("tfp"), disk.layout, disk.packed(0, 100), 0,
+                    [(0, 101, 50)])
+    assert pool.pending == 0
+
+
+def test_a_dead_process_is_an_error_not_a_hang(disk):
+    with FramePool(2, 1) as p:
+        os.kill(p.pids[1], signal.SIGKILL)
+        t0 = time.monotonic()
+        with pytest.raises(PoolError, match="exited"):
+            p.collect(timeout=30)
+        assert time.monotonic() - t0 < 10
+
+
+def test_regions_leave_nothing_in_shared_memory(disk):
+    folder = Path("/dev/shm")
+    if not folder.is_dir():
+        pytest.skip("no /dev/shm on this system (the regions live in the temporary folder)")
+    mine = f"cfsr-pool-{os.getpid()}-"
+    with FramePool(2, 1) as p:
+        assert not [f for f in os.listdir(folder) if f.startswith(mine)]  # unlinked once mapped
+        p.submit(1, MethodConfig("tfp"), disk.layout, disk.packed(0, 300), 0, [(0, 300, 299)])
+        assert p.collect(timeout=60) is not None
+    assert not [f for f in os.listdir(folder) if f.startswith(mine)]
+
+
+def test_a_task_larger_than_the_region_grows_it(disk):
+    with FramePool(1, 1, region_bytes=4096) as p:
+        cfg = MethodConfig("tfp")
+        got = list(pool_outputs(disk, cfg, [[900]], pool=p))
+        assert p.region_bytes >= 160 * disk.layout.frame_bytes
+    _same(got[0][1], reconstruct_outputs(disk, "tfp", [900])[0])
+
+
+def test_cli_workers_give_the_same_files(tmp_path, disk):
+    f = tmp_path / "in.dat"
+    cfsr.write_dat(f, disk.frames(0, disk.n_frames))
+    outs = {}
+    for w in ("1", "2"):
+        out = tmp_path / f"w{w}"
+        rc = main(["reconstruct", str(f), "--method", "csr", "--times", "400:1500:100",
+                   "--out", str(out), "--workers", w, "--quiet"])
+        assert rc == 0
+        outs[w] = out
+    names = sorted(p.name for p in outs["1"].glob("*.npy"))
+    assert len(names) == 11
+    for n in names:
+        assert np.array_equal(np.load(outs["1"] / n), np.load(outs["2"] / n)), n
+
+
+def test_cli_refuses_bad_worker_counts(tmp_path, disk, capsys):
+    f = tmp_path / "in.dat"
+    cfsr.write_dat(f, disk.frames(0, 200))
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(f), "--workers", "0", "--out", str(tmp_path / "o")])
+    assert "1..256" in capsys.readouterr().err
