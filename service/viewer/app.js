@@ -57,7 +57,7 @@
   }
   // the same colours as --coarse / --fine in style.css; where both masks hold, the fine one
   // is painted (it is the finer statement), so the two never blend into a third colour
-  const COARSE = [47, 123, 255], FINE = [255, 140, 26], ALPHA = 0.55;
+  const COARSE = [47, 123, 255], FINE = [255, 140, 26], ALPHA = 0.4;
   (function drawLegend() {
     const lctx = $("legend-bar").getContext("2d");
     const img = lctx.createImageData(256, 10);
@@ -178,6 +178,7 @@
     $("ov-coarse").disabled = !f.coarse;
     $("ov-fine").disabled = !f.fine;
     for (const w of frameWaiters.splice(0)) w(f);
+    if (state.pinned) alignCompare(f);
   }
   const frameWaiters = [];
   const nextFrame = () => new Promise((resolve) => frameWaiters.push(resolve));
@@ -428,6 +429,7 @@
 
   $("method-select").addEventListener("change", () => {
     clearTimeout(applyTimer);
+    if (state.pinned) state.pinned.aligned = 0;
     const name = $("method-select").value;
     buildParams(name, null);
     // a new method starts from its defaults (the service resets them on a method change)
@@ -507,10 +509,23 @@
     $("label-a").textContent = "pinned: " + p.frame.method + " @ step " + p.frame.step;
     $("label-b").textContent = "live: " + latest.method + " @ step " + latest.step;
     const d = latest.step - p.frame.step;
+    const paused = replayState() && !replayState().playing;
     $("compare-msg").textContent = d === 0
       ? (latest.method === p.frame.method ? "same step, same method: pick another method or parameter"
         : "same step: " + p.frame.method + " (left) vs " + latest.method + " (right)")
-      : "live frame is " + d + " steps " + (d > 0 ? "later" : "earlier") + " (pause the replay to compare on one step)";
+      : "live frame is " + Math.abs(d) + " steps " + (d > 0 ? "later" : "earlier")
+        + (paused ? (d < 0 ? " (this method looks further ahead: pin it first to compare on one step)" : "")
+          : " (pause the replay to compare on one step)");
+  }
+  // On a paused replay a method that looks further ahead of t than the pinned one outputs an
+  // earlier step from the same data: deliver the difference, and it reaches the pinned step.
+  let aligning = 0;
+  async function alignCompare(f) {
+    const p = state.pinned, r = replayState();
+    if (!p || !r || r.playing || f.method === p.frame.method || f.step >= p.frame.step) return;
+    if (aligning || p.aligned >= 3) return;
+    aligning = 1; p.aligned = (p.aligned || 0) + 1;
+    try { await replay("POST", "/api/replay/step", { n: p.frame.step - f.step }); } finally { aligning = 0; }
   }
   async function startCompare() {
     const r = state.lastStatus && state.lastStatus.source && state.lastStatus.source.replay;
