@@ -17,15 +17,18 @@ import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi import FastAPI, HTTPException, Request
 from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from cfsr.cli import version
+from service.body import MAX_QUOTE, StrictJsonBody, short
 from service.hub import FrameHub
-from service.models import reject_non_finite_json
 from service.runtime import Runtime
+from service.security import AttemptThrottle, SessionStore
 from service.settings import Settings
 
 __all__ = ["create_app", "viewer_dir"]
@@ -66,8 +69,6 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     # FastAPIOffline is FastAPI with /docs (Swagger UI) and /redoc served from the assets its
     # wheel ships, not from a CDN: the API docs work on a machine with no internet
     app = FastAPIOffline(
-        # every body, on every router, is refused with 422 if it holds NaN/Infinity/1e999
-        dependencies=[Depends(reject_non_finite_json)],
         title="CFSR live",
         version=version(),
         summary="Live spike-camera reconstruction: sources, worker, frames, masks, metrics.",
@@ -85,11 +86,29 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     async def _http_error(request: Request, exc: HTTPException):
         # One 422 shape for the whole API: our own checks (a method's parameter range, a seek
         # outside the recording) answer in FastAPI's validation-error format, the one the
-        # OpenAPI document promises for 422, not a bare string.
-        if exc.status_code == 422 and isinstance(exc.detail, str):
-            exc = HTTPException(422, [{"loc": ["body"], "msg": exc.detail,
-                                       "type": "value_error"}], headers=exc.headers)
+        # OpenAPI document promises for 422, not a bare string. No answer quotes more than
+        # a few hundred characters of what the client sent (a 20 MB method name included).
+        detail = short(exc.detail, 2 * MAX_QUOTE) if isinstance(exc.detail, str) else exc.detail
+        if exc.status_code == 422 and isinstance(detail, str):
+            detail = [{"loc": ["body"], "msg": detail, "type": "value_error"}]
+        exc = HTTPException(exc.status_code, detail, headers=exc.headers)
         return await http_exception_handler(request, exc)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError):
+        errors = [
+            {
+                "type": e.get("type"),
+                "loc": [short(x, 80) if isinstance(x, str) else x for x in e.get("loc", ())],
+                "msg": short(e.get("msg", ""), 2 * MAX_QUOTE),
+                "input": short(e["input"]) if "input" in e else None,
+            }
+            for e in exc.errors()[:20]
+        ]
+        return JSONResponse({"detail": errors}, status_code=422)
+
+    app.state.sessions = SessionStore()
+    app.state.auth_throttle = AttemptThrottle()
 
     app.state.settings = settings
     app.state.metrics = status.make_registry(app)
@@ -97,6 +116,8 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         app.include_router(r.router)
     if settings.test_hooks:
         app.include_router(debug.router)
+    # every request body, strict JSON of bounded size, before any route (service.body)
+    app.add_middleware(StrictJsonBody)
     # outermost: a request from a foreign page or a rebinding name goes no further
     app.add_middleware(
         HostOriginGuard,

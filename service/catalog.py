@@ -4,14 +4,19 @@ Recordings come only from the configured data folder: the listing is made by sca
 folder (symlinks that leave it are ignored), and a client selects an entry by its *id* from the
 listing. No path sent by a client is ever opened.
 
-A scan never fails because of one bad file: a recording whose sidecar or size is bad, or a
-FIFO/socket/device named like a recording, is listed with a ``note`` saying what is wrong (and
-logged once), cannot be selected, and is never opened for reading (only ``stat``; sidecars are
-opened without blocking and read only when they are regular files).
+A scan never fails because of one bad file: a recording whose sidecar or size is bad, whose
+frames are larger than the display holds, a FIFO/socket/device named like a recording, a
+symbolic link that loops, dangles or leads out of the folder, a folder that cannot be read (any
+``OSError``: permissions, loops, a file removed while the scan runs) is listed with a ``note``
+saying what is wrong (and logged once), cannot be selected, and is never opened for reading
+(only ``stat``; sidecars are opened without blocking and read only when they are regular
+files). The listing holds at most :data:`MAX_ENTRIES` entries from the folder, whatever their
+depth; when it stops there, its last entry says so.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import stat
@@ -20,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from driver.source import Source
-from service.settings import Settings, SourceSpec
+from service.settings import MAX_DISPLAY_PIXELS, Settings, SourceSpec
 
 __all__ = ["SourceCatalog", "CatalogEntry", "SIM_SCENES"]
 
@@ -62,6 +67,15 @@ class CatalogEntry:
             "note": self.note,
         }
         return d
+
+
+def _os_problem(exc: OSError) -> str:
+    """An OSError in words, without the path (the entry names the file)."""
+    if exc.errno == errno.ELOOP:
+        return "a symbolic link that loops"
+    if exc.errno == errno.ENOENT:
+        return "a symbolic link to nothing (dangling)"
+    return f"cannot be read ({exc.strerror or exc})"
 
 
 def _simulator_scenes() -> list[str]:
@@ -110,8 +124,11 @@ class SourceCatalog:
 
         try:
             st = path.stat()
-        except OSError:
+        except FileNotFoundError:
             return None
+        except OSError as exc:  # a link loop, a permission: say so, never fail the scan
+            e = CatalogEntry(id=id_, kind=kind, name=path.name, path=path)
+            return self._unusable(e, _os_problem(exc))
         e = CatalogEntry(id=id_, kind=kind, name=path.name, path=path)
         if not stat.S_ISREG(st.st_mode):
             # a FIFO would block whoever opened it; say what it is instead of "empty file"
@@ -123,6 +140,8 @@ class SourceCatalog:
         except (SpikeFileError, TypeError, ValueError) as exc:
             # the sidecar's own message names it, the key, the value and the allowed range
             return self._unusable(e, str(exc))
+        except OSError as exc:
+            return self._unusable(e, "sidecar: " + _os_problem(exc))
         e.width, e.height = lay.width, lay.height
         e.rate_hz = float(meta.get("rate_hz", STEP_RATE_HZ))
         if path.suffix.lower() == ".dat":
@@ -134,7 +153,84 @@ class SourceCatalog:
                 return self._unusable(
                     e, f"size {size} bytes is not a multiple of the {fb}-byte frame"
                 )
+        px = lay.width * lay.height
+        if px > MAX_DISPLAY_PIXELS:
+            return self._unusable(
+                e, f"{lay.width} x {lay.height} = {px} pixels is more than the "
+                f"{MAX_DISPLAY_PIXELS} pixels the display holds"
+            )
         return e
+
+    def _folder_entry(self, rel: str, path: Path) -> CatalogEntry | None:
+        """An entry for a file of the folder at ``rel`` (relative to the data folder); None
+        for a link that leads out of the folder (not listed: the folder is what is shared)."""
+        e = CatalogEntry(id=f"file:{rel}", kind="file", name=rel, path=path)
+        try:
+            real = Path(os.path.realpath(path, strict=True))
+        except OSError as exc:  # dangling or looping link
+            return self._unusable(e, _os_problem(exc))
+        if real != self.data_dir and self.data_dir not in real.parents:
+            return None
+        d = self._describe_file(real, e.id, "file")
+        if d is None:
+            return self._unusable(e, "removed while the folder was read")
+        d.name = rel
+        return d
+
+    def _scan_folder(self) -> list[CatalogEntry]:
+        """The data folder's recordings, depth first in name order, at most
+        :data:`MAX_ENTRIES` (then a last entry saying the listing stops there)."""
+        root = self.data_dir
+        out: list[CatalogEntry] = []
+        stack: list[tuple[Path, int]] = [(root, 0)]
+        skipped = 0
+        while stack:
+            folder, depth = stack.pop()
+            rel_dir = folder.relative_to(root).as_posix()
+            try:
+                with os.scandir(folder) as it:
+                    items = sorted(it, key=lambda x: x.name)
+            except OSError as exc:
+                if folder == root:
+                    return out  # no data folder (yet): nothing to list
+                if len(out) < MAX_ENTRIES:
+                    e = CatalogEntry(id=f"file:{rel_dir}/", kind="file", name=f"{rel_dir}/",
+                                     path=folder)
+                    out.append(self._unusable(e, "folder " + _os_problem(exc)))
+                continue
+            subdirs: list[Path] = []
+            for it in items:
+                name = it.name
+                if name.startswith("."):
+                    continue
+                try:
+                    is_dir = it.is_dir(follow_symlinks=False)
+                except OSError:
+                    is_dir = False
+                if is_dir:
+                    if depth + 1 < MAX_DEPTH:
+                        subdirs.append(Path(it.path))
+                    continue
+                if not name.lower().endswith(SUFFIXES):
+                    continue
+                if len(out) >= MAX_ENTRIES:
+                    skipped += 1
+                    continue
+                rel = f"{rel_dir}/{name}" if rel_dir != "." else name
+                e = self._folder_entry(rel, Path(it.path))
+                if e is not None:
+                    out.append(e)
+            if len(out) >= MAX_ENTRIES:
+                skipped += len(subdirs)  # not entered: counted as folders left out
+                continue
+            stack.extend((p, depth + 1) for p in reversed(subdirs))
+        if skipped:
+            out.append(CatalogEntry(
+                id="file:(listing cut)", kind="file", name="(more recordings not listed)",
+                note=f"the listing stops at {MAX_ENTRIES} recordings; {skipped} more files or "
+                "folders of the data folder are not listed (use sub-folders less deep, or "
+                "fewer files)", usable=False))
+        return out
 
     def scan(self) -> dict[str, CatalogEntry]:
         out: dict[str, CatalogEntry] = {}
@@ -149,49 +245,64 @@ class SourceCatalog:
             demo.note = "simulated on first use"
         out["demo"] = demo
         out.update(self.extra)
-        root = self.data_dir
-        if root.is_dir():
-            for dirpath, dirnames, filenames in os.walk(root, followlinks=False):
-                d = Path(dirpath)
-                depth = len(d.relative_to(root).parts)
-                if depth >= MAX_DEPTH:
-                    dirnames[:] = []
-                dirnames[:] = sorted(n for n in dirnames if not n.startswith("."))
-                for fn in sorted(filenames):
-                    if not fn.lower().endswith(SUFFIXES) or fn.startswith("."):
-                        continue
-                    p = d / fn
-                    try:
-                        real = p.resolve(strict=True)
-                        real.relative_to(root)  # a symlink leading out of the folder: skip
-                    except (OSError, ValueError):
-                        continue
-                    rel = p.relative_to(root).as_posix()
-                    e = self._describe_file(real, f"file:{rel}", "file")
-                    if e is not None:
-                        e.name = rel
-                        out[e.id] = e
-                    if len(out) > MAX_ENTRIES:
-                        break
-        cam = CatalogEntry(id="usb", kind="usb", name="USB spike camera")
-        import importlib.util
-
-        if importlib.util.find_spec("usb") is None:
-            cam.note = "pyusb is not installed"
-        out["usb"] = cam
+        for e in self._scan_folder():
+            out[e.id] = e
+        out["usb"] = self._usb_entry()
         for scene in [*SIM_SCENES, *_simulator_scenes()]:
             out[f"sim:{scene}"] = CatalogEntry(
                 id=f"sim:{scene}", kind="sim", name=f"live simulator: {scene}"
             )
         return out
 
+    @staticmethod
+    def _usb_entry() -> CatalogEntry:
+        import importlib.util
+
+        cam = CatalogEntry(id="usb", kind="usb", name="USB spike camera")
+        if importlib.util.find_spec("usb") is None:
+            cam.note = "pyusb is not installed"
+        return cam
+
     # -- opening ----------------------------------------------------------------------------
+    def _entry(self, source_id: str) -> CatalogEntry:
+        """The listing's entry ``source_id``, found without scanning the whole folder (a
+        switch to the simulator never reads the data folder); KeyError if there is none."""
+        if source_id == "demo" or source_id in self.extra:
+            entry = self.scan().get(source_id)
+        elif source_id == "usb":
+            entry = self._usb_entry()
+        elif source_id.startswith("sim:"):
+            scene = source_id[4:]
+            known = scene in SIM_SCENES or scene in _simulator_scenes()
+            entry = CatalogEntry(id=source_id, kind="sim", name=scene) if known else None
+        elif source_id.startswith("file:"):
+            entry = self._file_entry(source_id[5:])
+        else:
+            entry = None
+        if entry is None:
+            raise KeyError(source_id)
+        return entry
+
+    def _file_entry(self, rel: str) -> CatalogEntry | None:
+        """The entry of recording ``rel`` (as the listing names it), or None when the listing
+        would not hold it: a hidden or non-recording name, too deep, or below a link."""
+        parts = rel.split("/")
+        if (len(parts) > MAX_DEPTH or not rel.lower().endswith(SUFFIXES)
+                or any(p in ("", ".", "..") or p.startswith(".") for p in parts)):
+            return None
+        folder = self.data_dir
+        for p in parts[:-1]:
+            folder = folder / p
+            if folder.is_symlink() or not folder.is_dir():
+                return None  # the scan never enters a linked folder
+        path = folder / parts[-1]
+        if not os.path.lexists(path):
+            return None
+        return self._folder_entry(rel, path)
+
     def spec_for(self, source_id: str) -> SourceSpec:
         """Resolve a listing id to what to open; KeyError if the id is not listed."""
-        entries = self.scan()
-        if source_id not in entries:
-            raise KeyError(source_id)
-        e = entries[source_id]
+        e = self._entry(source_id)
         if not e.usable:
             raise ValueError(f"{e.name}: {e.note}")
         if e.kind == "demo":

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import hmac
+import math
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, WebSocket, status
+from starlette.requests import HTTPConnection
 
 from service.hub import FrameHub
 from service.runtime import Runtime
-from service.security import SESSION_COOKIE, session_ok
+from service.security import SESSION_COOKIE, AttemptThrottle
 from service.settings import Settings
 
 __all__ = [
@@ -18,7 +20,10 @@ __all__ = [
     "get_hub",
     "get_runtime",
     "get_settings",
+    "TooManyTries",
+    "client_key",
     "require_token",
+    "token_matches",
     "token_ok",
 ]
 
@@ -42,21 +47,53 @@ def _supplied(headers) -> str | None:
     return headers.get("x-cfsr-token")
 
 
-def token_ok(settings: Settings, headers, cookies) -> bool:
-    """The token from a header (``Authorization: Bearer``, ``X-CFSR-Token``) or the viewer's
-    session cookie (:mod:`service.security`); never from the URL, which servers log."""
+def client_key(conn: HTTPConnection) -> str:
+    """Who a request comes from, for the wrong-token throttle: the peer address."""
+    return conn.client.host if conn.client else "?"
+
+
+def token_matches(settings: Settings, given: str) -> bool:
+    """Whether ``given`` is the access token (constant time)."""
+    return bool(settings.token) and hmac.compare_digest(given.encode(), settings.token.encode())
+
+
+def token_ok(conn: HTTPConnection) -> bool:
+    """The token from a header (``Authorization: Bearer``, ``X-CFSR-Token``) or a live
+    session cookie (:class:`service.security.SessionStore`); never from the URL, which
+    servers log. A wrong header token counts against the client's throttle, and a client
+    over it is refused (429) whatever it sends (:class:`service.security.AttemptThrottle`)."""
+    state = conn.app.state
+    settings: Settings = state.settings
     if not settings.token:
         return True
-    given = _supplied(headers)
+    given = _supplied(conn.headers)
     if given is not None:
-        return hmac.compare_digest(given.encode(), settings.token.encode())
-    return session_ok(settings.token, cookies.get(SESSION_COOKIE))
+        throttle: AttemptThrottle = state.auth_throttle
+        key = client_key(conn)
+        wait = throttle.retry_after(key)
+        if wait > 0:
+            raise TooManyTries(wait)
+        if token_matches(settings, given):
+            return True
+        throttle.failed(key)
+        return False
+    return state.sessions.valid(conn.cookies.get(SESSION_COOKIE))
+
+
+class TooManyTries(HTTPException):
+    """429 with ``Retry-After``: the client gave too many wrong tokens lately."""
+
+    def __init__(self, wait_s: float) -> None:
+        secs = max(1, math.ceil(wait_s))
+        super().__init__(status.HTTP_429_TOO_MANY_REQUESTS,
+                         f"too many wrong access tokens; retry in {secs} s",
+                         headers={"Retry-After": str(secs)})
 
 
 def require_token(request: Request) -> None:
     """When the service has a token, every API call must carry it (header or session
     cookie)."""
-    if not token_ok(request.app.state.settings, request.headers, request.cookies):
+    if not token_ok(request):
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED,
             "missing or wrong access token",
@@ -65,7 +102,10 @@ def require_token(request: Request) -> None:
 
 
 def ws_token_ok(ws: WebSocket) -> bool:
-    return token_ok(ws.app.state.settings, ws.headers, ws.cookies)
+    try:
+        return token_ok(ws)
+    except TooManyTries:
+        return False
 
 
 RuntimeDep = Annotated[Runtime, Depends(get_runtime)]

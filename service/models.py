@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
-import json
 import math
 from typing import Annotated, Any, Literal
 
-from fastapi import Request
-from fastapi.exceptions import RequestValidationError
-from pydantic import BaseModel, BeforeValidator, Field
-from starlette.requests import HTTPConnection
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from service.config import GainMode
-from service.settings import MAX_FPS_RANGE, RECORDING_NAME_PATTERN
+from service.settings import (
+    MAX_DISPLAY_PIXELS,
+    MAX_FPS_RANGE,
+    MIN_DISPLAY_GAIN,
+    RECORDING_NAME_PATTERN,
+)
 from service.status import (
     ClientDrops,
     Drops,
@@ -47,8 +48,12 @@ __all__ = [
     "StatusModel",
     "StepRequest",
     "WorkerStatus",
-    "reject_non_finite_json",
 ]
+
+#: Request bodies are read in pydantic's strict mode: ``true`` is no number, ``1`` no boolean,
+#: ``"32"`` no integer (a client that sends them has a bug the service should name, not guess
+#: around). Bodies are strict JSON before they get here (:mod:`service.body`).
+STRICT = ConfigDict(strict=True)
 
 
 def _nan_as_text(v: Any) -> Any:
@@ -66,55 +71,6 @@ def _nan_as_text(v: Any) -> Any:
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False), BeforeValidator(_nan_as_text)]
 
 
-class _NonFinite(ValueError):
-    pass
-
-
-def _refuse_constant(name: str) -> float:
-    raise _NonFinite(name)
-
-
-def _finite_float(text: str) -> float:
-    v = float(text)
-    if not math.isfinite(v):
-        raise _NonFinite(text)
-    return v
-
-
-async def reject_non_finite_json(conn: HTTPConnection) -> None:
-    """Router dependency: a JSON body with ``NaN``, ``Infinity`` or a number too large for a
-    float (``1e999``) is a 422 naming it, before any model sees it.
-
-    Needed besides :data:`FiniteFloat` for values the models take as ``Any`` (method
-    parameters) and for bodies whose shape is wrong (``{"display": NaN}``): FastAPI's 422
-    answer echoes the input, and an input holding NaN cannot be rendered (a 500).
-    """
-    if not isinstance(conn, Request):  # a WebSocket has no body (app-wide dependency)
-        return
-    if "json" not in conn.headers.get("content-type", ""):
-        return
-    body = await conn.body()
-    if not body:
-        return
-    try:
-        json.loads(body, parse_constant=_refuse_constant, parse_float=_finite_float)
-    except _NonFinite as exc:
-        # the shape of FastAPI's own 422 (HTTPValidationError), so clients parse one kind
-        text = str(exc)[:40]
-        raise RequestValidationError(
-            [
-                {
-                    "type": "finite_number",
-                    "loc": ("body",),
-                    "msg": f"Input should be a finite number (the JSON body holds {text})",
-                    "input": text,
-                }
-            ]
-        ) from None
-    except ValueError:
-        return  # malformed JSON: FastAPI's own parser reports it
-
-
 class Health(BaseModel):
     status: Literal["ok"] = "ok"
     uptime_s: float
@@ -127,8 +83,13 @@ class DisplayConfig(BaseModel):
         "99.5th percentile of each frame; fixed: `gain`",
     )
     gain: FiniteFloat | None = Field(
-        None, gt=0, le=1, description="firing rate shown as white, spikes/step (fixed mode)"
+        None, ge=MIN_DISPLAY_GAIN, le=1,
+        description="firing rate shown as white, spikes/step (fixed mode)",
     )
+
+
+class DisplayUpdate(DisplayConfig):
+    model_config = STRICT
 
 
 class ConfigModel(BaseModel):
@@ -165,6 +126,11 @@ class Limits(BaseModel):
         description="frames per second the worker (config `max_fps`) or one WebSocket client "
         "may ask for",
     )
+    max_frame_pixels: int = Field(
+        MAX_DISPLAY_PIXELS,
+        description="most pixels (width x height) a source may have: what the display's frame "
+        "slot holds; a recording over it is listed with a note and cannot be selected",
+    )
     recording_name_pattern: str = Field(
         RECORDING_NAME_PATTERN,
         description="regular expression a recording's name (POST /api/record) must match; "
@@ -173,12 +139,14 @@ class Limits(BaseModel):
 
 
 class ConfigUpdate(BaseModel):
-    method: str | None = None
+    model_config = STRICT
+
+    method: str | None = Field(None, max_length=64)
     params: dict[str, Any] | None = Field(
         None, description="parameters to set; omitted ones keep their values (reset on a "
         "method change); each must lie in its range (GET /api/methods), else 422"
     )
-    display: DisplayConfig | None = None
+    display: DisplayUpdate | None = None
     max_fps: FiniteFloat | None = Field(
         None, ge=MAX_FPS_RANGE[0], le=MAX_FPS_RANGE[1],
         description="most frames per second the worker publishes",
@@ -208,12 +176,16 @@ class MethodInfo(BaseModel):
 
 
 class ReplayUpdate(BaseModel):
+    model_config = STRICT
+
     playing: bool | None = None
     speed: FiniteFloat | None = Field(None, gt=0, le=1000, description="1.0 = real time")
     loop: bool | None = None
 
 
 class SeekRequest(BaseModel):
+    model_config = STRICT
+
     # bounds keep seconds * rate_hz an exact int64 frame (2^48 frames: 223 years at 40 kHz)
     position: int | None = Field(None, ge=0, le=1 << 48, description="file frame")
     seconds: FiniteFloat | None = Field(
@@ -222,6 +194,8 @@ class SeekRequest(BaseModel):
 
 
 class StepRequest(BaseModel):
+    model_config = STRICT
+
     n: int = Field(1, ge=1, le=1_000_000, description="frames to deliver while paused")
 
 
@@ -239,10 +213,14 @@ class SourceItem(BaseModel):
 
 
 class SourceSelect(BaseModel):
-    id: str = Field(description="an id from GET /api/sources")
+    model_config = STRICT
+
+    id: str = Field(max_length=4096, description="an id from GET /api/sources")
 
 
 class RecordRequest(BaseModel):
+    model_config = STRICT
+
     action: Literal["start", "stop"]
     name: str | None = Field(
         None, pattern=RECORDING_NAME_PATTERN,

@@ -8,11 +8,18 @@ A recording never fills the disk: it is capped at ``max_bytes`` (default: the fr
 :data:`RESERVE_BYTES`), refused before it starts when not even one block fits, and stopped
 cleanly when the free space falls under the reserve while it runs (other writers share the
 disk). Whatever stops it (``stop_reason``), the ``.dat`` holds whole frames only and its sidecar
-is written atomically (see :class:`cfsr.datfile.DatWriter`), so the recording opens.
+is written atomically, so the recording opens.
+
+The ``.dat`` and its sidecar are created through :mod:`service.safefs` (:class:`FolderDatWriter`):
+exclusively, never through a symbolic link, in a folder opened inside the data folder; a name
+that exists in any form (another server's recording, a dangling link) is refused before a byte
+is written.
 """
 
 from __future__ import annotations
 
+import errno
+import os
 import shutil
 import threading
 import time
@@ -20,9 +27,16 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cfsr.datfile import DatWriter
+from cfsr.datfile import (
+    DatWriter,
+    _json_default,
+    _sidecar_dict,
+    sidecar_path,
+    validate_sidecar,
+)
 from cfsr.layout import Layout
 from driver.source import BlockFlags
+from service.safefs import create_exclusive, name_taken, write_json_at
 from shm.ring import SpikeRing
 
 if TYPE_CHECKING:
@@ -30,7 +44,7 @@ if TYPE_CHECKING:
     # install, which has no pydantic; only the live service asks a recorder for its status
     from service.status import RecordStatus
 
-__all__ = ["Recorder", "RESERVE_BYTES", "free_bytes", "size_cap"]
+__all__ = ["FolderDatWriter", "Recorder", "RESERVE_BYTES", "free_bytes", "size_cap"]
 
 #: free space a recording always leaves on its disk (for the sidecar, logs, the system)
 RESERVE_BYTES = 64 * 1024 * 1024
@@ -38,13 +52,72 @@ RESERVE_BYTES = 64 * 1024 * 1024
 _SPACE_CHECK_S = 0.5
 
 
-def free_bytes(folder: Path) -> int:
+def free_bytes(folder: Path | int) -> int:
+    """Free bytes (for this user) on the disk of ``folder``, a path or an open folder's
+    descriptor (which a link swapped in meanwhile cannot redirect)."""
+    if isinstance(folder, int):
+        st = os.fstatvfs(folder)
+        return int(st.f_bavail * st.f_frsize)
     return int(shutil.disk_usage(folder).free)
 
 
-def size_cap(folder: Path, max_bytes: int | None, least: int, least_what: str) -> int:
-    """Bytes a recording in ``folder`` may write: ``max_bytes`` (if given) within the free
-    space less :data:`RESERVE_BYTES`.
+class FolderDatWriter(DatWriter):
+    """A :class:`~cfsr.datfile.DatWriter` whose ``.dat`` and sidecar are created in an open
+    folder (``dir_fd``) with :mod:`service.safefs`: the ``.dat`` exclusively and never through
+    a link (FileExistsError when ``NAME.dat`` or ``NAME.dat.json`` exists in any form), the
+    sidecar by an atomic rename. Same checks, whole-frame trimming and sidecar as the base
+    class, which opens its file by path (following links, truncating what is there)."""
+
+    def __init__(
+        self,
+        dir_fd: int,
+        name: str,
+        layout: Layout,
+        *,
+        rate_hz: float,
+        meta: dict[str, Any] | None = None,
+        display_path: Path | None = None,
+    ) -> None:
+        self.path = display_path or Path(name)
+        self.layout = layout
+        self.rate_hz = float(rate_hz)
+        self.meta = dict(meta or {})
+        self.n_frames = 0
+        side = sidecar_path(name).name
+        validate_sidecar(_sidecar_dict(layout, 0, self.rate_hz, self.meta), side)
+        if name_taken(dir_fd, side):
+            raise FileExistsError(errno.EEXIST, f"{side} already exists", side)
+        self._dir_fd = os.dup(dir_fd)
+        try:
+            fd = create_exclusive(self._dir_fd, name)
+        except BaseException:
+            os.close(self._dir_fd)
+            raise
+        self._side = side
+        self._fh = os.fdopen(fd, "wb", buffering=0)
+
+    def write_sidecar(self) -> None:
+        """Write the sidecar of what is on disk now (atomically; also done by :meth:`close`)."""
+        side = _sidecar_dict(self.layout, self.n_frames, self.rate_hz, self.meta)
+        write_json_at(self._dir_fd, self._side, side, default=_json_default)
+
+    def close(self) -> None:
+        if self._fh.closed:
+            return
+        self._fh.close()
+        try:
+            self.write_sidecar()
+        finally:
+            os.close(self._dir_fd)
+
+
+def size_cap(
+    folder: Path | int, max_bytes: int | None, least: int, least_what: str,
+    *, where: str | None = None,
+) -> int:
+    """Bytes a recording in ``folder`` (a path or an open folder's descriptor, then named
+    ``where`` in messages) may write: ``max_bytes`` (if given) within the free space less
+    :data:`RESERVE_BYTES`.
 
     ValueError when ``max_bytes`` is under ``least`` bytes (the request is wrong); OSError when
     the disk has not ``least`` bytes to spare (the disk is full).
@@ -54,8 +127,9 @@ def size_cap(folder: Path, max_bytes: int | None, least: int, least_what: str) -
     room = free_bytes(folder) - RESERVE_BYTES
     cap = room if max_bytes is None else min(room, max_bytes)
     if cap < least:
+        free_mb = max(0, room + RESERVE_BYTES) / 1e6
         raise OSError(
-            f"not enough free space to record in {folder}: {max(0, room + RESERVE_BYTES) / 1e6:.0f}"
+            f"not enough free space to record in {where or folder}: {free_mb:.0f}"
             f" MB free, a recording keeps {RESERVE_BYTES / 1e6:.0f} MB free and needs at least "
             f"{least_what}"
         )
@@ -73,22 +147,36 @@ class Recorder:
         meta: dict[str, Any] | None = None,
         max_frames: int | None = None,
         max_bytes: int | None = None,
+        dir_fd: int | None = None,
     ) -> None:
+        """Record into ``path`` (created in the open folder ``dir_fd``, else in its parent
+        folder); FileExistsError when the name or its sidecar's exists in any form."""
         self.ring = ring
         self.path = Path(path)
         self.layout = layout
         fb = layout.frame_bytes
         block = ring.slot_frames * fb
-        self.max_bytes = size_cap(
-            self.path.parent, max_bytes, block,
-            f"one block of the stream ({ring.slot_frames} frames = {block} bytes)",
-        )
+        own_fd = dir_fd is None
+        if own_fd:
+            dir_fd = os.open(self.path.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+        try:
+            self.max_bytes = size_cap(
+                dir_fd, max_bytes, block,
+                f"one block of the stream ({ring.slot_frames} frames = {block} bytes)",
+                where=str(self.path.parent),
+            )
+            self._writer = FolderDatWriter(dir_fd, self.path.name, layout, rate_hz=rate_hz,
+                                           meta=meta or {}, display_path=self.path)
+        finally:
+            if own_fd:
+                os.close(dir_fd)
+        # the free space is watched on the folder the file is in, whatever its path becomes
+        self._space_fd = os.dup(self._writer._dir_fd)
         cap = self.max_bytes // fb
         self._asked_frames = max_frames
         self.max_frames = cap if max_frames is None else min(max_frames, cap)
         self.stop_reason: str | None = None
         self._reader = ring.reader(start="latest", keep=max(1, ring.n_slots // 2))
-        self._writer = DatWriter(path, layout, rate_hz=rate_hz, meta=meta or {})
         self._stop = threading.Event()
         self.drop_map: list[list[Any]] = []
         self.frames = 0
@@ -110,7 +198,7 @@ class Recorder:
             while not self._stop.is_set():
                 if time.monotonic() >= next_check:
                     next_check = time.monotonic() + _SPACE_CHECK_S
-                    free = free_bytes(self.path.parent)
+                    free = free_bytes(self._space_fd)
                     if free < RESERVE_BYTES:
                         self.stop_reason = f"disk nearly full ({free / 1e6:.0f} MB free)"
                         break
@@ -171,6 +259,7 @@ class Recorder:
         except OSError as exc:  # e.g. no room left even for the sidecar: the .dat still opens
             self.error = (self.error + "; " if self.error else "") + f"sidecar not written: {exc}"
         self._reader.close()
+        os.close(self._space_fd)
 
     def stop(self, timeout: float = 10.0) -> RecordStatus:
         """Stop recording (the file is closed and its sidecar written) and report."""

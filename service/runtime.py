@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from datetime import datetime
@@ -21,7 +22,8 @@ from driver.source import ReplayControl, Source
 from service.catalog import SourceCatalog
 from service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
 from service.kernels import KernelWarmup
-from service.settings import RECORDING_NAME_RE, Settings, SourceSpec
+from service.safefs import UnsafePathError, open_subfolder
+from service.settings import MAX_DISPLAY_PIXELS, RECORDING_NAME_RE, Settings, SourceSpec
 from service.status import (
     Drops,
     HubStatus,
@@ -91,7 +93,7 @@ class Runtime:
         st = self.settings
         self.config = LiveConfig(MethodConfig(st.method, st.params), DisplayScale(), st.max_fps)
         try:
-            self.slot = FrameSlot.create()
+            self.slot = FrameSlot.create(MAX_DISPLAY_PIXELS)
             spec = self.settings.source
             src = self.catalog.open(spec)
             self._install(src, spec.id)
@@ -151,9 +153,26 @@ class Runtime:
         blocking = self.settings.replay_mode == "fast"
         return SpikeRing.create(n_slots, slot_frames, lay.frame_bytes, blocking=blocking)
 
+    def _check_geometry(self, src: Source) -> None:
+        """ValueError (HTTP 422) when ``src``'s frames are larger than the display's frame
+        slot holds (:data:`~service.settings.MAX_DISPLAY_PIXELS`): such a source would be
+        accepted and never shown (and its ring sized for frames nobody can display)."""
+        lay = src.info.layout
+        limit = self.slot.max_pixels if self.slot is not None else MAX_DISPLAY_PIXELS
+        if lay.width * lay.height > limit:
+            raise ValueError(
+                f"{src.info.name}: {lay.width} x {lay.height} = {lay.width * lay.height} "
+                f"pixels is more than the {limit} pixels the display holds"
+            )
+
     def _install(self, src: Source, source_id: str) -> bool:
         """Make ``src`` the current source; returns True if a new ring was created."""
         src.open()
+        try:
+            self._check_geometry(src)  # a camera knows its geometry once open
+        except ValueError:
+            src.close()
+            raise
         ring = self.ring
         new_ring = (
             ring is None
@@ -183,6 +202,11 @@ class Runtime:
         """Open listed source ``source_id`` and make it current (KeyError if not listed)."""
         spec: SourceSpec = self.catalog.spec_for(source_id)
         new = self.catalog.open(spec)  # may raise: the old source keeps running
+        try:
+            self._check_geometry(new)
+        except ValueError:
+            new.close()
+            raise
         with self._lock:
             if self.recorder is not None:
                 self.last_recording = self.recorder.stop()
@@ -309,16 +333,19 @@ class Runtime:
         with self._lock:
             if self.recorder is not None and self.recorder.running:
                 raise ConflictError(f"already recording to {self.recorder.path.name}")
+            given = name
             name = name or datetime.now().strftime("rec-%Y%m%d-%H%M%S")
             if not RECORDING_NAME_RE.match(name):
-                raise ValueError(f"recording name {name!r}: use letters, digits, . _ - only")
+                raise ValueError(f"recording name {name[:80]!r}: use letters, digits, . _ - "
+                                 "only")
             if not name.endswith(".dat"):
                 name += ".dat"
             folder = self.settings.data_dir / "recordings"
-            folder.mkdir(parents=True, exist_ok=True)
-            path = folder / name
-            if path.exists():
-                raise ConflictError(f"recording {name} already exists")
+            try:
+                # never through a link, never outside the data folder (service.safefs)
+                dir_fd = open_subfolder(self.settings.data_dir, "recordings")
+            except UnsafePathError as exc:
+                raise ConflictError(str(exc)) from None
             src = self.source
             assert src is not None and self.ring is not None
             meta = {
@@ -327,15 +354,32 @@ class Runtime:
                 "method_at_start": self.config.method.method,
             }
             meta = {k: v for k, v in meta.items() if v is not None}
-            self.recorder = Recorder(
-                self.ring,
-                path,
-                src.info.layout,
-                rate_hz=src.info.rate_hz,
-                meta=meta,
-                max_frames=max_frames,
-                max_bytes=max_bytes,
-            )
+            try:
+                # a name is claimed by creating it exclusively: another server recording into
+                # this folder, or a link planted there, makes it taken (an unnamed recording
+                # takes the next free suffix)
+                for k in range(1 if given else 100):
+                    stem = name[:-4] if k == 0 else f"{name[:-4]}-{k + 1}"
+                    try:
+                        self.recorder = Recorder(
+                            self.ring,
+                            folder / f"{stem}.dat",
+                            src.info.layout,
+                            rate_hz=src.info.rate_hz,
+                            meta=meta,
+                            max_frames=max_frames,
+                            max_bytes=max_bytes,
+                            dir_fd=dir_fd,
+                        )
+                        break
+                    except FileExistsError:
+                        if given or k == 99:
+                            raise ConflictError(
+                                f"recording {stem}.dat (or its sidecar) already exists in the "
+                                "data folder (another server recording there, or a link)"
+                            ) from None
+            finally:
+                os.close(dir_fd)
             return self.recorder.status()
 
     def stop_recording(self) -> RecordStatus:

@@ -14,25 +14,32 @@ A loopback service is still reachable from every web page the user opens. Two at
 
 Tokens travel in a header (``Authorization: Bearer``, ``X-CFSR-Token``) or in the short-lived
 ``HttpOnly; SameSite=Strict`` session cookie that the viewer page obtains with
-``POST /api/session``; never in a URL, where servers and proxies log it.
+``POST /api/session`` (a random id the server remembers, revoked by ``DELETE /api/session``);
+never in a URL, where servers and proxies log it. Wrong tokens are throttled per client
+(:class:`AttemptThrottle`), and no log record of the process carries a secret
+(:func:`install_log_redaction`).
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import json
+import re
+import secrets
+import threading
 import time
+from collections import OrderedDict, deque
 from collections.abc import Iterable
 from urllib.parse import urlsplit
 
 __all__ = [
+    "AttemptThrottle",
+    "SessionStore",
+    "install_log_redaction",
+    "redact",
     "SESSION_COOKIE",
     "SESSION_SECONDS",
     "HostOriginGuard",
     "allowed_hosts",
-    "make_session",
-    "session_ok",
 ]
 
 SESSION_COOKIE = "cfsr_session"
@@ -65,26 +72,78 @@ def allowed_hosts(bind: str, extra: Iterable[str] = ()) -> frozenset[str] | None
     return frozenset(names)
 
 
-def make_session(token: str, now: float | None = None) -> str:
-    """A cookie value proving the token was shown: ``EXPIRY.HMAC(token, EXPIRY)`` (the token
-    itself never leaves the server again)."""
-    expiry = int((time.time() if now is None else now) + SESSION_SECONDS)
-    mac = hmac.new(token.encode(), str(expiry).encode(), hashlib.sha256).hexdigest()
-    return f"{expiry}.{mac}"
+class SessionStore:
+    """The viewer's sessions: random ids (256 bits) the server remembers until they expire
+    (:data:`SESSION_SECONDS`) or are revoked by ``DELETE /api/session``; a copy of a cookie
+    is worth nothing once its session is gone. At most ``max_sessions`` live at once (the
+    oldest go first); a restart ends them all."""
+
+    def __init__(self, seconds: float = SESSION_SECONDS, max_sessions: int = 256) -> None:
+        self.seconds = seconds
+        self.max_sessions = max_sessions
+        self._expiry: OrderedDict[str, float] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def new(self, now: float | None = None) -> str:
+        sid = secrets.token_urlsafe(32)
+        t = time.time() if now is None else now
+        with self._lock:
+            self._expiry[sid] = t + self.seconds
+            while len(self._expiry) > self.max_sessions:
+                self._expiry.popitem(last=False)
+        return sid
+
+    def valid(self, value: str | None, now: float | None = None) -> bool:
+        if not value or len(value) > 128:
+            return False
+        t = time.time() if now is None else now
+        with self._lock:
+            expiry = self._expiry.get(value)
+            if expiry is not None and expiry < t:
+                del self._expiry[value]
+                expiry = None
+        return expiry is not None
+
+    def revoke(self, value: str | None) -> None:
+        if value:
+            with self._lock:
+                self._expiry.pop(value, None)
 
 
-def session_ok(token: str, value: str | None, now: float | None = None) -> bool:
-    if not value or "." not in value:
-        return False
-    expiry_s, mac = value.split(".", 1)
-    try:
-        expiry = int(expiry_s)
-    except ValueError:
-        return False
-    if expiry < (time.time() if now is None else now):
-        return False
-    want = hmac.new(token.encode(), str(expiry).encode(), hashlib.sha256).hexdigest()
-    return hmac.compare_digest(want.encode(), mac.encode())
+class AttemptThrottle:
+    """Wrong tokens cost time: after ``limit`` wrong tries from one client within
+    ``window_s`` seconds, that client's tries (right or wrong, so the throttle cannot be
+    probed) are refused (HTTP 429) until the oldest of those falls out of the window.
+
+    Keyed by the client's address; at most ``max_clients`` are remembered (the least recent
+    go first), so a flood of addresses cannot grow it without bound."""
+
+    def __init__(self, limit: int = 5, window_s: float = 10.0, max_clients: int = 4096) -> None:
+        self.limit, self.window_s, self.max_clients = limit, window_s, max_clients
+        self._fails: OrderedDict[str, deque[float]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def retry_after(self, client: str, now: float | None = None) -> float:
+        """Seconds ``client`` must wait before its next try counts (0: it may try now)."""
+        t = time.monotonic() if now is None else now
+        with self._lock:
+            q = self._fails.get(client)
+            if not q:
+                return 0.0
+            while q and q[0] <= t - self.window_s:
+                q.popleft()
+            if len(q) < self.limit:
+                return 0.0
+            return max(0.0, q[-self.limit] + self.window_s - t)
+
+    def failed(self, client: str, now: float | None = None) -> None:
+        t = time.monotonic() if now is None else now
+        with self._lock:
+            q = self._fails.pop(client, None) or deque(maxlen=self.limit)
+            q.append(t)
+            self._fails[client] = q
+            while len(self._fails) > self.max_clients:
+                self._fails.popitem(last=False)
 
 
 class HostOriginGuard:
@@ -139,3 +198,54 @@ async def _deny(scope, send, status: int, detail: str) -> None:
                 "headers": [(b"content-type", b"application/json"),
                             (b"content-length", str(len(body)).encode())]})
     await send({"type": "http.response.body", "body": body})
+
+
+# -- secrets in logs ------------------------------------------------------------------------------
+_SECRET_FIELDS = re.compile(
+    r"(?i)(authorization|proxy-authorization|x-cfsr-token|cookie|set-cookie)"
+    r"(['\"]?\s*,\s*b?['\"]|['\"]?\s*[:=]\s*['\"]?)[^\r\n'\")]*"
+)
+_BEARER = re.compile(r"(?i)\b(bearer)\s+[^\s'\",;)]+")
+_SESSION_VALUE = re.compile(re.escape(SESSION_COOKIE) + r"=[^\s;'\",)]+")
+REDACTED = "[redacted]"
+
+
+def redact(text: str, values: Iterable[str] = ()) -> str:
+    """``text`` with every secret replaced by ``[redacted]``: the values given (the token),
+    the value of any ``Authorization``/``X-CFSR-Token``/``Cookie``/``Set-Cookie`` header in
+    the forms loggers print them (``name: value``, ``(b'name', b'value')``, ``'name': 'value'``),
+    bearer credentials and session cookies."""
+    for s in values:
+        if s:
+            text = text.replace(s, REDACTED)
+    text = _SECRET_FIELDS.sub(lambda m: m.group(1) + m.group(2) + REDACTED, text)
+    text = _BEARER.sub(lambda m: m.group(1) + " " + REDACTED, text)
+    return _SESSION_VALUE.sub(SESSION_COOKIE + "=" + REDACTED, text)
+
+
+def install_log_redaction(values: Iterable[str] = ()) -> None:
+    """Redact secrets (:func:`redact`) in every log record of this process, whatever its
+    logger, level or handler: the record factory rewrites the message when the record is
+    made (at debug, uvicorn's WebSocket layer logs every handshake header). Idempotent."""
+    import logging
+
+    known = [s for s in values if s]
+    current = logging.getLogRecordFactory()
+    base = getattr(current, "_cfsr_base", current)
+
+    def factory(*args, **kwargs):
+        rec = base(*args, **kwargs)
+        try:
+            msg = rec.getMessage()
+        except Exception:  # noqa: BLE001 - a record that cannot format is left as it is
+            return rec
+        clean = redact(msg, known)
+        if clean != msg:
+            rec.msg, rec.args = clean, ()
+        if rec.exc_info and not rec.exc_text:
+            text = logging.Formatter().formatException(rec.exc_info)
+            rec.exc_text = redact(text, known)
+        return rec
+
+    factory._cfsr_base = base  # type: ignore[attr-defined]
+    logging.setLogRecordFactory(factory)

@@ -16,9 +16,18 @@ RING_SECONDS_RANGE = (0.01, 10.0)
 #: letters, digits, ``.``, ``_``, ``-``; at most 64 characters, so never a path or a hidden file
 RECORDING_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 RECORDING_NAME_RE = re.compile(RECORDING_NAME_PATTERN)
+#: most pixels (width x height) of a source: what the display's frame slot holds. The one
+#: geometry limit of the live service: the slot is made this size, the listing notes a
+#: recording over it, and a switch to one is refused (422) naming both numbers
+MAX_DISPLAY_PIXELS = 1 << 20
+#: smallest display gain (spikes/step shown as white): one spike per million steps (25 s);
+#: below, 1/gain overflows the frame header's float32
+MIN_DISPLAY_GAIN = 1e-6
 
 __all__ = [
+    "MAX_DISPLAY_PIXELS",
     "MAX_FPS_RANGE",
+    "MIN_DISPLAY_GAIN",
     "RECORDING_NAME_PATTERN",
     "RECORDING_NAME_RE",
     "RING_SECONDS_RANGE",
@@ -108,6 +117,11 @@ class Settings:
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).expanduser()
+        if self.token is not None and not self.token.strip():
+            # a token of blanks is one an attacker guesses first (and "--token ' '" is a
+            # slip, not a choice): refused on every bind, not only where one is required
+            raise ValueError("the access token is blank (--token or CFSR_TOKEN): give a real "
+                             "one, or none on a loopback address")
         if not is_loopback(self.host) and not self.token:
             raise ValueError(
                 f"binding to {self.host} (not loopback) requires an access token "

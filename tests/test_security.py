@@ -9,7 +9,13 @@ from fastapi import FastAPI, WebSocket
 from fastapi.testclient import TestClient
 from livehelpers import LiveServer, write_pattern
 
-from service.security import HostOriginGuard, allowed_hosts, make_session, session_ok
+from service.security import (
+    AttemptThrottle,
+    HostOriginGuard,
+    SessionStore,
+    allowed_hosts,
+    redact,
+)
 
 
 def _tiny_app(hosts, origins=()):
@@ -65,13 +71,42 @@ def test_guard_host_and_origin_rules():
             ws.receive_text()
 
 
-def test_session_cookie_value():
-    v = make_session("tok", now=1000.0)
-    assert session_ok("tok", v, now=1000.0)
-    assert not session_ok("other", v, now=1000.0)
-    assert not session_ok("tok", v, now=10**9)  # expired
-    assert not session_ok("tok", "garbage") and not session_ok("tok", None)
-    assert "tok" not in v
+def test_sessions_are_random_expire_and_revoke():
+    store = SessionStore(seconds=100, max_sessions=3)
+    v = store.new(now=1000.0)
+    assert store.valid(v, now=1050.0)
+    assert not store.valid(v, now=1101.0)  # expired (and forgotten)
+    assert not store.valid(v, now=1050.0)
+    a = store.new(now=1000.0)
+    assert store.new(now=1000.0) != a and len(a) >= 40  # 256 random bits, not derived
+    store.revoke(a)
+    assert not store.valid(a, now=1000.0)  # a copy of a revoked cookie is worthless
+    assert not store.valid("garbage") and not store.valid(None) and not store.valid("x" * 999)
+    first = store.new(now=1000.0)
+    for _ in range(3):
+        store.new(now=1000.0)
+    assert not store.valid(first, now=1000.0)  # the oldest go once max_sessions are live
+
+
+def test_wrong_tokens_are_throttled_per_client():
+    t = AttemptThrottle(limit=3, window_s=10.0)
+    for k in range(3):
+        assert t.retry_after("a", now=100.0 + k) == 0
+        t.failed("a", now=100.0 + k)
+    assert t.retry_after("a", now=103.0) == pytest.approx(7.0)
+    assert t.retry_after("b", now=103.0) == 0  # another client is not held
+    assert t.retry_after("a", now=110.5) == 0  # the oldest try left the window
+
+
+def test_redact_hides_every_form_of_a_secret():
+    for line in ["< authorization: Bearer abc123", "> Cookie: cfsr_session=xyz; a=1",
+                 "headers [(b'authorization', b'Bearer abc123')]", "x-cfsr-token: abc123",
+                 "{'authorization': 'Bearer abc123'}", "the token abc123 was sent",
+                 "set-cookie: cfsr_session=xyz; HttpOnly"]:
+        out = redact(line, ["abc123"])
+        assert "abc123" not in out and "xyz" not in out, out
+        assert "[redacted]" in out
+    assert redact("GET /api/status 200") == "GET /api/status 200"
 
 
 @pytest.fixture(scope="module")

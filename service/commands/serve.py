@@ -208,6 +208,37 @@ def run(args: argparse.Namespace) -> int:
     _check_port(settings.host, settings.port)
     _check_data_dir(settings.data_dir)
     say = lambda m: print(f"cfsr serve: {m}", flush=True)  # noqa: E731
+    from service.safefs import FolderLock
+    from service.security import install_log_redaction
+    from service.signals import (
+        Stopped,
+        ignore_ending_signals,
+        raise_on_ending_signals,
+        start_resource_tracker,
+    )
+
+    # no log record of this process, at any level, carries the token or a session cookie
+    install_log_redaction([settings.token] if settings.token else [])
+    start_resource_tracker()  # before any queue: it must outlive a closed terminal
+    raise_on_ending_signals()  # a signal during the start unwinds it cleanly
+    lock = FolderLock(settings.data_dir)
+    if lock.holder is not None:
+        say(f"another cfsr serve (pid {lock.holder or 'unknown'}) uses the data folder "
+            f"{settings.data_dir}: recordings are created exclusively, so a name the other "
+            "server has taken is refused here (409)")
+    try:
+        return _serve(settings, args, say)
+    except Stopped as exc:
+        ignore_ending_signals()
+        return 128 + exc.signum
+    finally:
+        lock.close()
+
+
+def _serve(settings, args: argparse.Namespace, say) -> int:
+    """Start the runtime, serve until stopped, stop; the exit status."""
+    from service.signals import ignore_ending_signals
+
     stale = _remove_stale_segments()
     if stale:
         say(f"removed {stale} shared-memory file(s) left by a server that did not stop cleanly")
@@ -216,9 +247,8 @@ def run(args: argparse.Namespace) -> int:
 
         ensure_demo(settings.demo_steps, say=say)
 
-    import uvicorn
-
     from service.app import create_app
+    from service.httpproto import HeadTimeoutH11Protocol
     from service.runtime import Runtime
 
     rt = Runtime(settings)
@@ -228,6 +258,32 @@ def run(args: argparse.Namespace) -> int:
         rt.stop()
         print(f"cfsr serve: error: could not start: {exc}", file=sys.stderr)
         return 2
+    except BaseException:  # an ending signal: Runtime.start has cleaned up after itself
+        rt.stop()
+        raise
+    try:
+        server = _make_server(settings, args, say, rt, create_app, HeadTimeoutH11Protocol)
+        try:
+            server.run()
+        except SystemExit:
+            pass  # uvicorn exits when it cannot bind; reported below
+    finally:
+        ignore_ending_signals()  # the stop below runs to its end
+        rt.stop()  # idempotent: normally the lifespan has stopped it already
+    if not server.started:
+        print(f"cfsr serve: error: could not start on {settings.host}:{settings.port}",
+              file=sys.stderr)
+        return 2
+    caught = server._captured_signals  # what ended it, if a signal did
+    return 128 + int(caught[-1]) if caught else 0
+
+
+def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
+    """The uvicorn server of ``rt``'s app (every ending signal trapped, request heads timed)."""
+    import uvicorn
+
+    from service.signals import trap_ending_signals
+
     if rt.kernels.status().state == "compiling":
         say("first start here: compiling the methods' kernels in the background at low "
             "priority (a few minutes; progress in the viewer, 'kernels' in /api/status)")
@@ -237,6 +293,10 @@ def run(args: argparse.Namespace) -> int:
     url = f"http://{shown}:{settings.port}/"
 
     class _Server(uvicorn.Server):
+        def capture_signals(self):
+            # SIGHUP and SIGQUIT too, and nothing re-raised afterwards (service.signals)
+            return trap_ending_signals(self.handle_exit)
+
         async def startup(self, sockets=None):
             await super().startup(sockets)
             if self.started:
@@ -254,15 +314,6 @@ def run(args: argparse.Namespace) -> int:
         ws_ping_timeout=20,
         timeout_graceful_shutdown=3,
         workers=1,
+        http=http,  # a request head must come within 10 s
     )
-    server = _Server(config)
-    try:
-        server.run()
-    except SystemExit:
-        pass  # uvicorn exits when it cannot bind; reported below
-    finally:
-        rt.stop()  # idempotent: normally the lifespan has stopped it already
-    if not server.started:
-        print(f"cfsr serve: error: could not start on {host}:{settings.port}", file=sys.stderr)
-        return 2
-    return 0
+    return _Server(config)

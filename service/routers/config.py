@@ -3,16 +3,46 @@
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Response
 
+from service.body import short
 from service.config import ConfigChange
 from service.deps import RuntimeDep, require_token
-from service.models import ConfigModel, ConfigUpdate, Limits, MethodInfo, reject_non_finite_json
+from service.models import ConfigModel, ConfigUpdate, Limits, MethodInfo
 
-router = APIRouter(
-    tags=["config"], dependencies=[Depends(require_token), Depends(reject_non_finite_json)]
-)
+router = APIRouter(tags=["config"], dependencies=[Depends(require_token)])
+
+
+def check_param_types(method: str, params: dict[str, Any]) -> None:
+    """A method parameter's JSON type must be its own: a number for a numeric parameter
+    (``true`` and ``"32"`` are not), a string among text choices, a boolean for a switch.
+    ValueError naming the parameter; ranges, names and choices are the method's to check."""
+    from cfsr.methods.registry import methods
+
+    table = methods().get(method, {}).get("params", {})
+    for name, value in params.items():
+        info = table.get(name)
+        if info is None:
+            continue  # an unknown name: the method's own check names it with the known ones
+        default = info.get("default")
+        numeric = info.get("minimum") is not None or info.get("maximum") is not None
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+            want = "true or false"
+        elif numeric or isinstance(default, int | float):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            want = "a number"
+        elif info.get("choices"):
+            ok = type(value) in {type(c) for c in info["choices"]}
+            want = "one of " + ", ".join(map(str, info["choices"]))
+        else:
+            ok = isinstance(value, str) if isinstance(default, str) else True
+            want = "text"
+        if not ok:
+            raise ValueError(f"parameter {short(name, 64)}={short(value, 64)}: expected {want} "
+                             f"({info.get('range') or ''})".replace(" ()", ""))
 
 
 @router.get("/api/methods", response_model=list[MethodInfo],
@@ -47,6 +77,8 @@ async def get_config(rt: RuntimeDep) -> dict:
             })
 async def put_config(body: ConfigUpdate, rt: RuntimeDep, response: Response) -> dict:
     try:
+        if body.params:
+            check_param_types(body.method or rt.config.method.method, body.params)
         # in a thread: it waits (a few seconds at most) for the worker's answer
         change = ConfigChange(
             method=body.method,

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 
 from service.deps import RuntimeDep
 from service.models import Health
@@ -22,13 +23,61 @@ async def healthz(rt: RuntimeDep) -> Health:
     return Health(uptime_s=time.monotonic() - rt.started)
 
 
-@router.get("/readyz", summary="503 unless the source streams and the worker is alive and "
-            f"beat within {READY_HEARTBEAT_S:g} s")
-async def readyz(response: Response, rt: RuntimeDep) -> dict:
+#: a source that streams while the worker publishes no frame for this long (or three frame
+#: intervals at the configured max_fps, if longer) is not ready: every frame fails, or the
+#: source cannot be shown
+READY_FRAME_S = 5.0
+
+
+def _now() -> float:
+    return time.monotonic()
+
+
+@dataclass
+class _FrameWatch:
+    """When /readyz last saw the worker's frame count move, and the input at that time."""
+
+    acq_id: int = 0
+    frames_out: float = -1.0
+    frames_in: int = 0
+    since: float = 0.0
+
+
+def _no_frame_for(request: Request, rt, frames_out: float) -> float:
+    """Seconds the worker has published no frame while the source delivered frames (0 when
+    it did publish, or nothing came in). Read each time /readyz is asked."""
+    acq, t = rt.acq, _now()
+    w: _FrameWatch | None = getattr(request.app.state, "frame_watch", None)
+    if w is None:
+        w = request.app.state.frame_watch = _FrameWatch()
+    frames_in = int(getattr(acq, "frames", 0))
+    if id(acq) != w.acq_id or frames_out != w.frames_out:
+        w.acq_id, w.frames_out, w.frames_in, w.since = id(acq), frames_out, frames_in, t
+        return 0.0
+    if frames_in <= w.frames_in:
+        w.since = t  # nothing came in: nothing could be shown
+        return 0.0
+    return t - w.since
+
+
+@router.get("/readyz", summary="503 unless the source streams, the worker is alive, beat "
+            f"within {READY_HEARTBEAT_S:g} s and publishes frames of what streams in")
+async def readyz(request: Request, response: Response, rt: RuntimeDep) -> dict:
     w = rt.worker
-    age = w.stats().get("heartbeat_age_s", math.inf) if w else math.inf
+    st = w.stats() if w else {}
+    age = st.get("heartbeat_age_s", math.inf)
     fresh = age <= READY_HEARTBEAT_S
-    ok = bool(w and w.alive and w.ready.is_set() and fresh and rt.acq and rt.acq.running)
+    streaming = bool(rt.acq and rt.acq.running)
+    stalled = _no_frame_for(request, rt, float(st.get("frames_out", 0.0))) if streaming else 0.0
+    max_fps = getattr(getattr(rt, "config", None), "max_fps", None) or 1.0
+    frame_limit = max(READY_FRAME_S, 3.0 / max_fps)
+    ok = bool(w and w.alive and w.ready.is_set() and fresh and streaming
+              and stalled <= frame_limit)
+    out = {"ready": ok, "heartbeat_age_s": age if math.isfinite(age) else None,
+           "no_frame_s": round(stalled, 3)}
     if not ok:
         response.status_code = 503
-    return {"ready": ok, "heartbeat_age_s": age if math.isfinite(age) else None}
+        if streaming and stalled > frame_limit:
+            out["reason"] = (f"the source streams but no frame was published for "
+                             f"{stalled:.1f} s")
+    return out

@@ -3,13 +3,11 @@ the token is never put in a URL (WebSocket URLs are logged) nor kept by the page
 
 from __future__ import annotations
 
-import hmac
-
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from pydantic import BaseModel, Field
 
-from service.deps import token_ok
-from service.security import SESSION_COOKIE, SESSION_SECONDS, make_session
+from service.deps import TooManyTries, client_key, token_matches, token_ok
+from service.security import SESSION_COOKIE, SESSION_SECONDS
 
 router = APIRouter(tags=["session"])
 
@@ -23,32 +21,47 @@ class SessionState(BaseModel):
     authenticated: bool
 
 
+def _authenticated(request: Request) -> bool:
+    try:
+        return token_ok(request)
+    except TooManyTries:
+        return False
+
+
 @router.get("/api/session", response_model=SessionState,
             summary="whether the API needs a token, and whether this client has shown it")
 async def get_session(request: Request) -> SessionState:
     settings = request.app.state.settings
     return SessionState(
         token_required=bool(settings.token),
-        authenticated=token_ok(settings, request.headers, request.cookies),
+        authenticated=_authenticated(request),
     )
 
 
 @router.post("/api/session", response_model=SessionState,
-             responses={401: {"description": "wrong token"}},
+             responses={401: {"description": "wrong token"},
+                        429: {"description": "too many wrong tokens lately (Retry-After)"}},
              summary="show the token once; answers with an HttpOnly, SameSite=Strict cookie")
 async def post_session(body: SessionRequest, request: Request, response: Response) -> SessionState:
-    token = request.app.state.settings.token
-    if not token:
+    state = request.app.state
+    if not state.settings.token:
         return SessionState(token_required=False, authenticated=True)
-    if not hmac.compare_digest(body.token.encode(), token.encode()):
+    key = client_key(request)
+    wait = state.auth_throttle.retry_after(key)
+    if wait > 0:  # right or wrong: while throttled, a try tells nothing
+        raise TooManyTries(wait)
+    if not token_matches(state.settings, body.token):
+        state.auth_throttle.failed(key)
         raise HTTPException(status.HTTP_401_UNAUTHORIZED, "wrong access token")
-    response.set_cookie(SESSION_COOKIE, make_session(token), max_age=SESSION_SECONDS,
+    response.set_cookie(SESSION_COOKIE, state.sessions.new(), max_age=SESSION_SECONDS,
                         httponly=True, samesite="strict", path="/")
     return SessionState(token_required=True, authenticated=True)
 
 
-@router.delete("/api/session", response_model=SessionState, summary="forget this session")
+@router.delete("/api/session", response_model=SessionState,
+               summary="end this session: its cookie is worthless from now on, even a copy")
 async def delete_session(request: Request, response: Response) -> SessionState:
+    request.app.state.sessions.revoke(request.cookies.get(SESSION_COOKIE))
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     return SessionState(token_required=bool(request.app.state.settings.token),
                         authenticated=not request.app.state.settings.token)

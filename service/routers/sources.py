@@ -17,14 +17,11 @@ from service.models import (
     SourceSelect,
     SourceStatus,
     StepRequest,
-    reject_non_finite_json,
 )
 from service.runtime import ConflictError, Runtime
 
-# NaN/Infinity in a body is a 422 naming it (replay speed, seek seconds), never a 500
-router = APIRouter(
-    tags=["sources"], dependencies=[Depends(require_token), Depends(reject_non_finite_json)]
-)
+# (NaN/Infinity in a body is refused before any route: service.body)
+router = APIRouter(tags=["sources"], dependencies=[Depends(require_token)])
 
 
 @router.get("/api/sources", response_model=list[SourceItem],
