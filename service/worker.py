@@ -49,6 +49,7 @@ __all__ = [
     "Stop",
     "WorkerError",
     "WorkerSupervisor",
+    "pick_tier",
     "worker_main",
 ]
 
@@ -331,25 +332,15 @@ class _Worker:
         return self._arrival[-1][1] if self._arrival else time.monotonic()
 
     def _quality(self) -> str:
-        """The tier of the next frame (:class:`_Worker`'s auto rule)."""
+        """The tier of the next frame (:func:`pick_tier` on the measured costs)."""
         if len(self._tiers) < 2:
             return next(iter(self._tiers))
-        full, fast = self._ema.get("full"), self._ema.get("fast")
-        if full is None:
-            return "full"
         # seconds of pool time one frame may take for the pool to keep max_fps
-        budget = self.pool.workers / self.config.max_fps
-        if full <= budget:
-            return "full"
-        if fast is None:
-            return "fast"
-        # the share of full frames that keeps the mean cost within the budget, spread evenly
-        share = 0.0 if full <= fast else min(1.0, max(0.0, (budget - fast) / (full - fast)))
-        self._credit += share
-        if self._credit >= 1.0:
-            self._credit -= 1.0
-            return "full"
-        return "fast"
+        budget_ms = 1e3 * self.pool.workers / self.config.max_fps
+        tier, self._credit = pick_tier(
+            self._ema.get("full"), self._ema.get("fast"), budget_ms, self._credit
+        )
+        return tier
 
     def _submit(self) -> bool:
         """Hand the newest computable step to an idle pool process, if the pace allows."""
@@ -369,10 +360,11 @@ class _Worker:
         tag = self._tag
         arrival = self._arrival_of(t + rec.after)
         delay = 0.0
-        if self._first_pending and self._first_since is None:
-            self._first_since = now
-            self.put("first_frame_since", now)
-            delay, self.slow_first = self.slow_first, 0.0  # test hook: a compile's wait
+        if self._first_pending:
+            if self._first_since is None:
+                self._first_since = now
+                self.put("first_frame_since", now)
+            delay = self.slow_first  # test hook: every process waits, as on a compile
         self.pool.submit(tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)], delay=delay)
         self._tasks[tag] = _Task(t, arrival, quality, self.config.version, now)
         self._last_submit = t
@@ -400,14 +392,15 @@ class _Worker:
             if task.version != self.config.version:
                 self.bump("dropped_late")  # computed under a config since replaced
                 continue
-            if self._first_pending:
-                self._first_pending = False
+            first, self._first_pending = self._first_pending, False
+            if first:  # shown however long it took: nothing newer of this config exists
+                self.slow_first = 0.0
                 self.put("first_frame_since", 0.0)
                 self.put("fallback", 0.0)
             if self._last_shown is not None and t <= self._last_shown:
                 self.bump("dropped_order")
                 continue
-            if time.monotonic() - task.arrival > LATE_S:
+            if not first and time.monotonic() - task.arrival > LATE_S:
                 self.bump("dropped_late")
                 continue
             self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms)
@@ -492,6 +485,30 @@ class _Worker:
         submitted = self._submit()
         fell_back = self._fallback()
         return shown or submitted or fell_back
+
+
+def pick_tier(
+    full_ms: float | None, fast_ms: float | None, budget_ms: float, credit: float
+) -> tuple[str, float]:
+    """CFSR's auto tier for the next frame, and the credit carried to the one after.
+
+    ``full_ms``/``fast_ms``: measured cost of a frame of each tier (None: not measured yet,
+    so that tier is tried); ``budget_ms``: what one frame may cost for the pool to keep the
+    frame rate (processes / max_fps). Full when full frames fit the budget; otherwise the
+    share of full frames that keeps the mean cost within it, ``(budget - fast) / (full -
+    fast)``, spread evenly by the credit (none when even fast frames exceed it).
+    """
+    if full_ms is None:
+        return "full", credit
+    if full_ms <= budget_ms:
+        return "full", 0.0
+    if fast_ms is None:
+        return "fast", credit
+    share = 0.0 if full_ms <= fast_ms else (budget_ms - fast_ms) / (full_ms - fast_ms)
+    credit += min(1.0, max(0.0, share))
+    if credit >= 1.0:
+        return "full", credit - 1.0
+    return "fast", credit
 
 
 def _tiers(cfg: WorkerConfig) -> dict[str, Any]:

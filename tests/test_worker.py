@@ -16,7 +16,7 @@ from driver.acquisition import Acquisition
 from replay.device import ReplayDevice
 from replay.pattern import pattern_recording
 from service.config import WorkerConfig
-from service.worker import WorkerSupervisor
+from service.worker import WorkerSupervisor, pick_tier
 from shm.frameslot import FrameSlot
 from shm.ring import SpikeRing
 
@@ -234,3 +234,106 @@ def test_a_slow_first_frame_is_reported_and_not_taken_for_a_hang(rec):
         sup.stop()
         ring.close()
         slot.close()
+
+
+@pytest.fixture
+def pool_pipeline(rec):
+    """The deterministic pipeline with a pool of two reconstruction processes."""
+    dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=64)
+    dev.open()
+    ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
+    slot = FrameSlot.create(max_pixels=H * W)
+    sup = WorkerSupervisor(slot, _cfg(), workers=2)
+    sup.start(str(ring.path), rec.layout)
+    assert sup.ready.wait(120), "worker did not start"
+    acq = Acquisition(dev, ring)
+    acq.start()
+    yield dev, ring, slot, sup, acq
+    acq.stop()
+    sup.stop()
+    ring.close()
+    slot.close()
+
+
+def test_two_workers_publish_the_offline_frames_in_step_order(rec, pool_pipeline):
+    """Frames computed side by side are the offline frames, shown in increasing step; the
+    status says how many processes run and counts what was computed but not shown."""
+    dev, ring, slot, sup, acq = pool_pipeline
+    for method in ("tfp", "csr"):
+        if method != "tfp":
+            sup.configure(_cfg(method))
+        frames = _frames(slot, 12, method=method)
+        assert len(frames) == 12, f"no {method} frames"
+        steps = [f.step for f in frames]
+        assert steps == sorted(steps) and len(set(steps)) == len(steps)
+        compared = 0
+        for f in frames:
+            exp = _expected(rec, method, f.step)
+            if exp is not None:
+                assert np.array_equal(f.image, exp[0]), f"{method} at step {f.step} differs"
+                compared += 1
+        assert compared >= 3
+    st = sup.status(40_000.0).status
+    assert st.workers == 2 and st.threads_per_worker == 1
+    assert st.frames_out >= 24
+    assert st.dropped_order >= 0 and st.dropped_late >= 0
+    assert sup.stats()["ring_lost_frames"] == 0
+
+
+def test_pick_tier_holds_the_budget():
+    """The auto rule: full while full frames fit the budget; else the share of full frames
+    that keeps the mean cost within it; fast only when even fast frames do not fit."""
+    assert pick_tier(None, None, 50.0, 0.0)[0] == "full"  # not measured: try it
+    assert pick_tier(40.0, 10.0, 50.0, 0.0)[0] == "full"
+    assert pick_tier(100.0, None, 50.0, 0.0)[0] == "fast"
+    for full, fast, budget in ((100.0, 20.0, 50.0), (90.0, 30.0, 80.0), (200.0, 10.0, 11.0)):
+        credit, tiers = 0.0, []
+        for _ in range(400):
+            tier, credit = pick_tier(full, fast, budget, credit)
+            tiers.append(tier)
+        mean = sum(full if x == "full" else fast for x in tiers) / len(tiers)
+        assert mean <= budget + 1e-9 and mean >= budget - (full - fast) / len(tiers) - 1e-9
+        assert "full" in tiers and "fast" in tiers
+    tiers = [pick_tier(100.0, 60.0, 50.0, 0.0)[0] for _ in range(10)]
+    assert set(tiers) == {"fast"}
+
+
+def test_auto_quality_shows_fast_frames_when_full_ones_cannot_hold_the_rate(
+    rec, pool_pipeline
+):
+    """CFSR under quality = auto at a frame rate full frames cannot hold: fast frames are
+    shown and the status counts each tier; quality = full then shows full frames only."""
+    dev, ring, slot, sup, acq = pool_pipeline
+    cfg = WorkerConfig(MethodConfig("cfsr"), gain=GAIN, max_fps=1000.0, deterministic=True,
+                       quality="auto")
+    sup.configure(cfg)
+    got = _frames(slot, 16, method="cfsr", timeout=240)
+    assert len(got) == 16
+    q = sup.status(40_000.0).status.quality
+    assert q.mode == "auto"
+    assert q.fast >= 8, q
+    before = q.full
+    sup.configure(WorkerConfig(MethodConfig("cfsr", {"quality": "full"}), gain=GAIN,
+                               max_fps=1000.0, deterministic=True, quality="full"))
+    wait_until(lambda: sup.applied_version == sup.config.version, 30, "the applied version")
+    q0 = sup.status(40_000.0).status.quality
+    assert _frames(slot, 4, method="cfsr", timeout=120)
+    q1 = sup.status(40_000.0).status.quality
+    assert q1.mode == "full" and q1.fast == q0.fast and q1.full > before
+
+
+def test_frames_of_a_ready_method_stand_in_while_a_first_frame_waits(rec, pool_pipeline):
+    """A first frame that waits (as on numba's compiler): TFP frames keep coming meanwhile,
+    and the status names the stand-in; then the chosen method's frames take over."""
+    dev, ring, slot, sup, acq = pool_pipeline
+    assert _frames(slot, 2, method="tfp")
+    sup.inject("slow_first", seconds=4.0)
+    sup.configure(_cfg("csr"))
+    wait_until(lambda: sup.status(40_000.0).status.fallback_method == "tfp", 30,
+               "the stand-in named in the status", interval=0.05)
+    seq = slot.seq
+    stand_in = _frames(slot, 4, method="tfp", timeout=30)  # the first may be the one shown
+    assert sum(f.seq > seq for f in stand_in) >= 3
+    assert _frames(slot, 2, method="csr", timeout=60), "no frames after the first one waited"
+    st = sup.status(40_000.0).status
+    assert st.fallback_method is None and st.fallback_frames >= 3
