@@ -32,11 +32,18 @@ __all__ = [
     "DisplayScale",
     "GainMode",
     "LiveConfig",
+    "QUALITIES",
+    "Quality",
     "WorkerConfig",
+    "split_quality",
     "check_max_fps",
 ]
 
 GainMode = Literal["recording", "auto", "fixed"]
+#: CFSR's tier in the live service: auto (full when max_fps allows it, fast frames between),
+#: or the method's own quality parameter fixed
+Quality = Literal["auto", "full", "fast"]
+QUALITIES: tuple[Quality, ...] = ("auto", "full", "fast")
 #: recording: the source's display gain if it has one, else auto; auto: per frame; fixed: gain
 GAIN_MODES: tuple[GainMode, ...] = ("recording", "auto", "fixed")
 
@@ -99,30 +106,82 @@ class ConfigChange:
     max_fps: float | None = None
 
 
+def split_quality(
+    params: Mapping[str, Any] | None, current: Quality | None = None
+) -> tuple[dict[str, Any] | None, Quality | None]:
+    """Take the live-only ``quality = auto`` out of method ``params``.
+
+    Returns the parameters for the method (``auto`` removed; ``full``/``fast`` stay, they
+    are the method's own) and the live tier they ask for (None: not given, keep ``current``).
+    """
+    if params is None or "quality" not in params:
+        return (None if params is None else dict(params)), current
+    rest = dict(params)
+    q = rest["quality"]
+    if q == "auto":
+        del rest["quality"]
+        return rest, "auto"
+    if isinstance(q, str) and q in QUALITIES:
+        return rest, q  # type: ignore[return-value]
+    return rest, current  # not a tier: the method's validation names it
+
+
 @dataclass(frozen=True)
 class LiveConfig:
-    """The service's configuration: method, display scale and frame-rate cap."""
+    """The service's configuration: method, display scale, frame-rate cap, and CFSR's tier
+    (``quality``: auto, the live default, picks full or fast per frame to hold ``max_fps``;
+    methods without a ``quality`` parameter ignore it)."""
 
     method: MethodConfig
     display: DisplayScale = field(default_factory=DisplayScale)
     max_fps: float = 30.0
+    quality: Quality = "auto"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "max_fps", check_max_fps(self.max_fps))
+        if self.quality not in QUALITIES:
+            raise ValueError(f"quality {self.quality!r}: use auto, full or fast")
+
+    @classmethod
+    def make(
+        cls,
+        method: str,
+        params: Mapping[str, Any] | None = None,
+        display: DisplayScale | None = None,
+        max_fps: float = 30.0,
+    ) -> LiveConfig:
+        """A configuration from a method name and parameters that may hold ``quality =
+        auto`` (the command line's ``--method``/``--param``)."""
+        from cfsr.config import MethodConfig
+
+        rest, q = split_quality(params)
+        return cls(MethodConfig(method, rest), display or DisplayScale(), max_fps, q or "auto")
 
     def changed(self, change: ConfigChange) -> LiveConfig:
         """The next configuration after the partial update ``change``, all or nothing
         (ValueError naming the first bad value; this one is unchanged). Parameters not given
-        keep their values, except on a change of method, which starts from its defaults."""
-        m = self.method.replace(method=change.method, params=change.params)
+        keep their values, except on a change of method, which starts from its defaults
+        (and CFSR's tier from auto)."""
+        new_method = (
+            change.method is not None and change.method.strip().lower() != self.method.method
+        )
+        params, q = split_quality(change.params, None if new_method else self.quality)
+        m = self.method.replace(method=change.method, params=params)
+        if q is None:
+            q = "auto"
+        if q == "auto" and "quality" in m.params and m.params["quality"] != "full":
+            m = m.replace(params={"quality": "full"})  # auto runs both tiers from full
         d = self.display if change.display is None else self.display.changed(change.display)
-        return LiveConfig(m, d, self.max_fps if change.max_fps is None else change.max_fps)
+        return LiveConfig(m, d, self.max_fps if change.max_fps is None else change.max_fps, q)
 
     def public(self) -> dict[str, Any]:
         """The JSON shape of ``GET /api/config`` (without the effective gain)."""
+        params = dict(self.method.params)
+        if "quality" in params:
+            params["quality"] = self.quality if self.quality == "auto" else params["quality"]
         return {
             "method": self.method.method,
-            "params": dict(self.method.params),
+            "params": params,
             "display": {"gain_mode": self.display.gain_mode, "gain": self.display.gain},
             "max_fps": self.max_fps,
         }
@@ -138,3 +197,6 @@ class WorkerConfig:
     max_fps: float = 30.0
     deterministic: bool = False  # read every ring block (replay mode "fast", tests)
     version: int = 0
+    #: CFSR's tier: its own ``quality`` parameter (full, fast), or auto: full when the
+    #: frame rate allows it, fast frames between (methods without the parameter: ignored)
+    quality: Quality = "auto"

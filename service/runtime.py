@@ -88,17 +88,19 @@ class Runtime:
     def start(self) -> None:
         """Validate the configuration of the settings, open the source, make the ring and
         the frame slot, start acquisition and the worker (all or nothing)."""
-        from cfsr.config import MethodConfig
-
         st = self.settings
-        self.config = LiveConfig(MethodConfig(st.method, st.params), DisplayScale(), st.max_fps)
+        self.config = LiveConfig.make(st.method, st.params, DisplayScale(), st.max_fps)
         try:
             self.slot = FrameSlot.create(MAX_DISPLAY_PIXELS)
             spec = self.settings.source
             src = self.catalog.open(spec)
             self._install(src, spec.id)
             self.worker = WorkerSupervisor(
-                self.slot, self._worker_config(), hang_timeout=self.settings.worker_hang_timeout
+                self.slot,
+                self._worker_config(),
+                hang_timeout=self.settings.worker_hang_timeout,
+                workers=self.settings.workers,
+                threads=self.settings.threads,
             )
             assert self.ring is not None
             self.worker.start(str(self.ring.path), self.source.info.layout)
@@ -264,6 +266,7 @@ class Runtime:
             gain=self._effective_gain(c),
             max_fps=c.max_fps,
             deterministic=self.settings.replay_mode == "fast",
+            quality=c.quality,
         )
 
     def get_config(self) -> dict[str, Any]:

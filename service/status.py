@@ -192,6 +192,19 @@ def ring_status(ring: SpikeRing | None, frames_before: int, rate_hz: float) -> R
 
 
 # -- the worker ---------------------------------------------------------------------------------
+class QualityShare(BaseModel):
+    """CFSR's quality tiers in the live service: the mode and the frames shown at each."""
+
+    mode: str | None = Field(
+        None,
+        description="auto (full when the frame rate allows it, fast frames between), full or "
+        "fast; None for a method without tiers",
+    )
+    full: int = Field(0, description="frames shown at full quality (every frame of a method "
+                      "without tiers)")
+    fast: int = Field(0, description="frames shown at the fast tier")
+
+
 class WorkerStatus(BaseModel):
     alive: bool
     ready: bool
@@ -211,6 +224,25 @@ class WorkerStatus(BaseModel):
     real_time_factor: float
     frames_out: int
     gaps: int
+    workers: int = Field(1, description="reconstruction processes: frames computed at once")
+    threads_per_worker: int = Field(1, description="numba/OpenCV threads in each process")
+    quality: QualityShare = Field(default_factory=QualityShare)
+    dropped_late: int = Field(
+        0,
+        description="frames computed but not shown: their spikes arrived over a second ago, "
+        "or their config was replaced (no spike data lost)",
+    )
+    dropped_order: int = Field(
+        0,
+        description="frames computed but not shown: a newer step was shown first (no spike "
+        "data lost)",
+    )
+    fallback_method: str | None = Field(
+        None,
+        description="while the first frame under the config waits (on a first use: on the "
+        "compiler), the method whose frames are shown instead",
+    )
+    fallback_frames: int = Field(0, description="frames of the fallback method shown so far")
 
 
 class WorkerReport(BaseModel):
