@@ -30,6 +30,10 @@ __all__ = [
     "streaming_state_rtf",
     "format_rows",
     "time_call",
+    "TIER_CANDIDATES",
+    "TIER_BARS",
+    "tier_rows",
+    "carried_rows",
 ]
 
 #: Display rate that "real time" means for reconstructed frames (frames per second).
@@ -297,6 +301,184 @@ def core_forecast(ms_1thread: float, measured: dict[str, Any], cores: Sequence[i
         "efficiency": eff,
         "fps": {int(c): c * 1e3 / ms_1thread * eff for c in cores},
     }
+
+
+#: CFSR settings tried for the ``fast`` quality tier (``cfsr bench --tiers``): each changes
+#: what the stage profile showed to cost (MOG history, the mirrored history, distinction
+#: window, still-pixel reach, PatchMatch targets and search). ``quality=fast`` is the
+#: cheapest that keeps :data:`TIER_BARS` on every scene.
+TIER_CANDIDATES: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("mog 6x64", {"mog_frames": 6, "mog_stride": 64}),
+    ("mog past", {"mog_sides": "past"}),
+    ("still 0", {"still_reach": 0}),
+    ("still 190", {"still_reach": 190}),
+    ("pm 12", {"pm_count": 12}),
+    ("pm 12x4", {"pm_count": 12, "pm_step": 4}),
+    ("pm 10x5", {"pm_count": 10, "pm_step": 5}),
+    ("fast, pm 16", {"quality": "fast", "pm_count": 16}),
+    ("fast, pm 12", {"quality": "fast", "pm_count": 12}),
+    ("fast", {"quality": "fast"}),
+)
+#: Largest PSNR loss (dB) of ``fast`` against ``full``: whole frame, motion region.
+TIER_BARS = (0.5, 1.0)
+
+
+def _scores(outs, gts, masks, gain: float) -> tuple[float, float]:
+    """Mean PSNR (dB) over frames: whole frame and true motion region (NaN without motion)."""
+    from cfsr.display import to_display
+    from cfsr.metrics import psnr
+
+    imgs = [to_display(o.rate, gain) for o in outs]
+    whole = [psnr(g, i) for g, i in zip(gts, imgs, strict=True)]
+    motion = [psnr(g, i, mask=m) for g, i, m in zip(gts, imgs, masks, strict=True) if m.any()]
+    return float(np.mean(whole)), float(np.mean(motion)) if motion else float("nan")
+
+
+def _cpu_ms(fn: Callable[[], Any], rounds: int) -> float:
+    """Median CPU milliseconds of ``fn()`` over ``rounds`` calls (after one warm-up): CPU
+    time, so that other jobs on a shared machine move it less than wall time."""
+    fn()
+    out = []
+    for _ in range(rounds):
+        t0 = time.process_time()
+        fn()
+        out.append(time.process_time() - t0)
+    return float(np.median(out)) * 1e3
+
+
+def tier_rows(
+    scenes: Sequence[str],
+    candidates: Sequence[tuple[str, dict[str, Any]]] = TIER_CANDIDATES,
+    *,
+    steps: int = 1400,
+    times: Sequence[int] = (492, 700, 892),
+    cost_scene: str = "disk",
+    rounds: int = 3,
+) -> list[dict[str, Any]]:
+    """PSNR (whole frame, motion region) of CSR, CFSR ``full`` and each candidate setting on
+    each simulated scene, the loss against ``full`` and whether :data:`TIER_BARS` hold;
+    on ``cost_scene`` also CPU ms per isolated frame (median of ``rounds`` passes over
+    ``times``) and the cost relative to ``full``."""
+    from cfsr.display import to_display
+    from cfsr.simulate import simulate
+    from cfsr.spikes import SpikeRecording
+    from cfsr.streaming import StreamingReconstructor
+
+    variants = [("csr", "csr", {}), ("full", "cfsr", {})] + [
+        (label, "cfsr", params) for label, params in candidates
+    ]
+    rows = []
+    for scene in scenes:
+        sim = simulate(scene, steps, seed=0)
+        gain = sim.rate_scale
+        gts = [to_display(sim.ideal_rate(t), gain) for t in times]
+        masks = [sim.motion_mask(t) for t in times]
+        rec = SpikeRecording.from_array(sim.spikes)
+        per: dict[str, dict[str, Any]] = {}
+        for label, name, params in variants:
+            sr = StreamingReconstructor(name, rec.layout, params=params, slack=steps)
+            sr.push(rec.packed(0, steps), 0)
+
+            def isolated(sr=sr):
+                outs = []
+                for t in times:
+                    sr.memo.clear()
+                    outs.append(sr.compute(t))
+                return outs
+
+            whole, motion = _scores(isolated(), gts, masks, gain)
+            row = {
+                "scene": scene,
+                "tier": label,
+                "method": name,
+                "params": params,
+                "psnr_all": whole,
+                "psnr_motion": motion,
+            }
+            if scene == cost_scene:
+                row["ms_per_frame"] = _cpu_ms(isolated, rounds) / len(times)
+            per[label] = row
+            rows.append(row)
+        full = per["full"]
+        for row in per.values():
+            row["d_all"] = row["psnr_all"] - full["psnr_all"]
+            row["d_motion"] = row["psnr_motion"] - full["psnr_motion"]
+            row["above_csr"] = row["psnr_all"] > per["csr"]["psnr_all"]
+            row["within_bars"] = row["d_all"] >= -TIER_BARS[0] and not (
+                row["d_motion"] < -TIER_BARS[1]
+            )
+            if "ms_per_frame" in row:
+                row["x_full_cost"] = row["ms_per_frame"] / full["ms_per_frame"]
+    return rows
+
+
+def carried_rows(
+    scenes: Sequence[str],
+    *,
+    params: dict[str, Any] | None = None,
+    stride: int = 32,
+    count: int = 16,
+    steps: int = 1400,
+    rounds: int = 2,
+) -> list[dict[str, Any]]:
+    """Dense CFSR output (``count`` frames ``stride`` steps apart, one group of
+    :func:`cfsr.methods.cfsr_fine.carry_groups`, carried from frame to frame) against the same
+    frames isolated (memo emptied before each): PSNR of both (whole, motion region), the
+    difference, CPU ms per frame of both (median of ``rounds``) and the ratio isolated /
+    carried."""
+    from cfsr.display import to_display
+    from cfsr.methods.cfsr_fine import carry_groups
+    from cfsr.methods.registry import get_method, resolve_params
+    from cfsr.simulate import simulate
+    from cfsr.spikes import SpikeRecording
+    from cfsr.streaming import StreamingReconstructor
+
+    p = resolve_params(get_method("cfsr"), params)
+    span = int(p["carry_span"]) or steps
+    rows = []
+    for scene in scenes:
+        sim = simulate(scene, steps, seed=0)
+        gain = sim.rate_scale
+        rec = SpikeRecording.from_array(sim.spikes)
+        sr = StreamingReconstructor("cfsr", rec.layout, params=params, slack=steps)
+        sr.push(rec.packed(0, steps), 0)
+        first = max(span, sr.before)  # a whole group inside one span, its window complete
+        times = [first + stride * i for i in range(count)]
+        if times[-1] + sr.after >= steps or len(carry_groups(times, p)) != 1:
+            raise ValueError(f"{count} outputs {stride} steps apart do not fit one group")
+        gts = [to_display(sim.ideal_rate(t), gain) for t in times]
+        masks = [sim.motion_mask(t) for t in times]
+
+        def run(carry: bool, sr=sr, times=times):
+            sr.memo.clear()
+            outs = []
+            for t in times:
+                if not carry:
+                    sr.memo.clear()
+                outs.append(sr.compute(t))
+            return outs
+
+        iso_all, iso_mot = _scores(run(False), gts, masks, gain)
+        car_all, car_mot = _scores(run(True), gts, masks, gain)
+        iso_ms = _cpu_ms(lambda run=run: run(False), rounds) / count
+        car_ms = _cpu_ms(lambda run=run: run(True), rounds) / count
+        rows.append(
+            {
+                "scene": scene,
+                "stride": stride,
+                "frames": count,
+                "psnr_all_isolated": iso_all,
+                "psnr_all_carried": car_all,
+                "psnr_motion_isolated": iso_mot,
+                "psnr_motion_carried": car_mot,
+                "d_all": car_all - iso_all,
+                "d_motion": car_mot - iso_mot,
+                "ms_isolated": iso_ms,
+                "ms_carried": car_ms,
+                "speedup": iso_ms / car_ms,
+            }
+        )
+    return rows
 
 
 def amdahl(t1: float, tn: float, n: int) -> float:

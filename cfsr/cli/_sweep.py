@@ -139,3 +139,72 @@ def print_sweep(res: dict[str, Any]) -> None:
             ],
         )
     )
+
+
+def tiers(args: argparse.Namespace, bar) -> dict[str, Any]:
+    """``--tiers``: :func:`cfsr.bench.tier_rows`; ``--dense``: :func:`cfsr.bench.carried_rows`
+    (both on ``--scenes``, default every simulated scene; ``--quick``: disk and car)."""
+    from cfsr.bench import carried_rows, tier_rows
+    from cfsr.simulate import SCENES
+
+    scenes = (
+        [s.strip() for s in args.scenes.split(",") if s.strip()]
+        if args.scenes
+        else (["disk", "car"] if args.quick else list(SCENES))
+    )
+    out: dict[str, Any] = {"scenes": scenes}
+    bar.reset(total=int(args.tiers) + int(args.dense))
+    if args.tiers:
+        bar.set_description("quality tiers")
+        out["tiers"] = tier_rows(scenes, rounds=1 if args.quick else 3)
+        bar.update()
+    if args.dense:
+        bar.set_description("dense output")
+        out["dense"] = carried_rows(scenes, rounds=1 if args.quick else 2)
+        bar.update()
+    return out
+
+
+def print_tiers(res: dict[str, Any]) -> None:
+    from cfsr.bench import TIER_BARS, format_rows
+
+    if res.get("tiers"):
+        print(
+            f"quality tiers: PSNR in dB, loss against full (bars {TIER_BARS[0]} whole, "
+            f"{TIER_BARS[1]} motion), CPU ms per isolated frame where measured"
+        )
+        print(
+            format_rows(
+                res["tiers"],
+                [
+                    ("scene", "scene", ""),
+                    ("tier", "setting", ""),
+                    ("psnr_all", "PSNR all", ".2f"),
+                    ("psnr_motion", "PSNR motion", ".2f"),
+                    ("d_all", "d all", "+.2f"),
+                    ("d_motion", "d motion", "+.2f"),
+                    ("within_bars", "in bars", ""),
+                    ("above_csr", "> CSR", ""),
+                    ("ms_per_frame", "CPU ms", ".1f"),
+                    ("x_full_cost", "x full", ".2f"),
+                ],
+            )
+        )
+    if res.get("dense"):
+        print("dense output carried from frame to frame against the same frames isolated:")
+        print(
+            format_rows(
+                res["dense"],
+                [
+                    ("scene", "scene", ""),
+                    ("stride", "stride", ""),
+                    ("psnr_all_isolated", "all iso", ".2f"),
+                    ("d_all", "d all", "+.3f"),
+                    ("psnr_motion_isolated", "motion iso", ".2f"),
+                    ("d_motion", "d motion", "+.3f"),
+                    ("ms_isolated", "CPU ms iso", ".1f"),
+                    ("ms_carried", "CPU ms carried", ".1f"),
+                    ("speedup", "x cheaper", ".2f"),
+                ],
+            )
+        )

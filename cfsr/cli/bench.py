@@ -46,6 +46,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(static, ~10%%, ~30%%, full motion)",
     )
     p.add_argument(
+        "--tiers",
+        action="store_true",
+        help="CFSR quality tiers: PSNR (whole, motion) of csr, full, fast and the candidate "
+        "settings tried for fast on every simulated scene, and their CPU cost on the disk",
+    )
+    p.add_argument(
+        "--dense",
+        action="store_true",
+        help="CFSR dense output (16 frames 32 steps apart, work carried from frame to frame) "
+        "against the same frames isolated: PSNR and CPU cost per frame, per scene",
+    )
+    p.add_argument(
         "--methods", help="override the grid: comma-separated specs, e.g. tfi,tfp:window=32,cfsr"
     )
     p.add_argument("--scenes", help="simulated scenes (default: all; quick: disk,car)")
@@ -453,7 +465,7 @@ def run(args: argparse.Namespace) -> int:
     from cfsr.cli._extras import require_extra
 
     # checked before the run, not after minutes of work
-    if not (args.throughput or args.sweep):
+    if not (args.throughput or args.sweep or args.tiers or args.dense):
         require_extra("bench")  # the accuracy grid ends with its Pareto plot
     if getattr(args, "cluster", None):
         require_extra("cluster")
@@ -463,6 +475,11 @@ def run(args: argparse.Namespace) -> int:
         if args.throughput:
             res = _throughput(args, bar)
             name = "throughput.json"
+        elif args.tiers or args.dense:
+            from cfsr.cli._sweep import tiers
+
+            res = tiers(args, bar)
+            name = "tiers.json" if args.tiers else "dense.json"
         elif args.sweep:
             from cfsr.cli._sweep import sweep
 
@@ -478,6 +495,10 @@ def run(args: argparse.Namespace) -> int:
         _write_json(args.json, res)
     if args.throughput:
         _print_throughput(res)
+    elif args.tiers or args.dense:
+        from cfsr.cli._sweep import print_tiers
+
+        print_tiers(res)
     elif args.sweep:
         from cfsr.cli._sweep import print_sweep
 

@@ -63,7 +63,7 @@ PatchMatch-region scan (step 5).
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, MutableMapping
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -109,7 +109,15 @@ from cfsr.methods.steady import steady_range
 from cfsr.methods.still import still_pixels
 from cfsr.methods.tfp import STATIC_ESTIMATORS, span_rate, tfp_span
 
-__all__ = ["fine_mask", "fine_stage", "cfsr_window"]
+__all__ = [
+    "QUALITY_TIERS",
+    "carry_groups",
+    "cfsr_window",
+    "effective_params",
+    "fast_config",
+    "fine_mask",
+    "fine_stage",
+]
 
 #: Ranges: a window-like parameter (steps) reaches at most half the ring's limit
 #: (MAX_WINDOW_STEPS) on its side of t, the static gate's two spans a quarter each; frame
@@ -271,6 +279,36 @@ FINE_PARAMS: dict[str, Param] = {
         minimum=0,
         maximum=10.0,
     ),
+    # the tier's settings replace only parameters left at their defaults (QUALITY_TIERS;
+    # its measured cost and PSNR are in docs/methods.md, "Quality tiers")
+    "quality": Param(
+        "full",
+        "",
+        "quality tier: full (every default) or fast (4 MOG frames on the past alone, a "
+        "200-step distinction window, 300-step still reach, 14 PatchMatch targets each side: "
+        "about 0.75x the cost of full, within 0.35 dB of it on the simulator); parameters "
+        "set to other values than their defaults keep them",
+        choices=("full", "fast"),
+    ),
+    # outputs close together continue from the previous one (_Carry): its history frames are
+    # reused instead of recomputed; the result moves by under 0.1 dB (docs/methods.md,
+    # "Carried work")
+    "carry_span": Param(
+        512,
+        "steps",
+        "outputs within one span of this many steps (spans start at multiples of it) reuse "
+        "the previous output's work when at most carry_gap steps after it (0: every output "
+        "from nothing, as an isolated one)",
+        minimum=0,
+        maximum=MAX_WINDOW_STEPS,
+    ),
+    "carry_gap": Param(
+        128,
+        "steps",
+        "largest step from the previous output that still reuses its work",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 2,
+    ),
     "adaptive": Param(
         True,
         "",
@@ -328,8 +366,81 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+#: What each ``quality`` tier changes (docs/methods.md, "Quality tiers"). ``fast`` is the
+#: cheapest point measured by ``cfsr bench --tiers`` that stays within 0.5 dB (whole frame) and
+#: 1.0 dB (motion region) of ``full`` on every simulator scene.
+QUALITY_TIERS: dict[str, dict[str, Any]] = {
+    "full": {},
+    "fast": {
+        # the same reach of history (~380 steps) in 4 frames instead of 12, and the paper's
+        # Eq. 9 on the past alone (no mirrored history after t): no scene moved by 0.1 dB
+        "mog_frames": 4,
+        "mog_stride": 96,
+        "mog_sides": "past",
+        # a 200-step distinction window and a 300-step still-pixel reach: within 0.05 dB
+        "T": 200,
+        "still_reach": 300,
+        # the first PatchMatch target's full search from 8 pixels instead of 16 (no scene
+        # moved), and 14 targets each side instead of 16: the PatchMatch frames and searches
+        # are the largest cost left, and the car (the slowest mover, whose matches average
+        # noise) lost 0.27 dB at 14 and 0.67 dB at 12
+        "pm_radius": 8,
+        "pm_count": 14,
+    },
+}
+
+_DEFAULTS = {k: prm.default for k, prm in {**CSR_PARAMS, **FINE_PARAMS}.items()}
+
+
+def effective_params(p: Mapping[str, Any]) -> Mapping[str, Any]:
+    """The parameters one frame runs with: ``p`` with its ``quality`` tier's settings
+    (:data:`QUALITY_TIERS`) in place of the values left at their defaults. A parameter set to
+    any other value keeps it (a value equal to the default cannot be told from an unset one:
+    the tier replaces it). ``full`` returns ``p`` itself."""
+    tier = QUALITY_TIERS[p.get("quality", "full")]
+    if not tier:
+        return p
+    return {**p, **{k: v for k, v in tier.items() if p.get(k, _DEFAULTS[k]) == _DEFAULTS[k]}}
+
+
+def fast_config(cfg: Any) -> Any:
+    """The ``fast`` tier of a CFSR :class:`~cfsr.config.MethodConfig` (its other parameters
+    kept); a config of another method is returned as it is."""
+    if cfg.method != "cfsr":
+        return cfg
+    return cfg.replace(params={"quality": "fast"})
+
+
+def carry_groups(times: Iterable[int], p: Mapping[str, Any]) -> list[list[int]]:
+    """Split output steps into the groups within which outputs carry work forward.
+
+    The steps are sorted and deduplicated; a group ends where the next step lies in another
+    span of ``carry_span`` steps (spans start at multiples of it, from step 0) or more than
+    ``carry_gap`` steps after the previous one (``carry_span = 0``: every step alone). The
+    groups depend only on the steps and these two parameters: the first output of a group is
+    computed from nothing (as an isolated output) and the others continue from the one before
+    them, so a group run in order with one memo gives the same frames in any process, and
+    the frames do not depend on how the groups are shared between processes.
+    """
+    ts = sorted({int(t) for t in times})
+    groups: list[list[int]] = []
+    for t in ts:
+        if groups and _continues(groups[-1][-1], t, p):
+            groups[-1].append(t)
+        else:
+            groups.append([t])
+    return groups
+
+
+def _continues(prev: int, t: int, p: Mapping[str, Any]) -> bool:
+    """Whether output step ``t`` continues from ``prev`` (:func:`carry_groups`' rule)."""
+    span = int(p.get("carry_span", 0))
+    return span > 0 and prev // span == t // span and 0 < t - prev <= int(p["carry_gap"])
+
+
 def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
-    """Steps before/after t that one CFSR frame needs."""
+    """Steps before/after t that one CFSR frame needs (under its tier's settings)."""
+    p = effective_params(p)
     cb, ca = csr_window(p)  # the static TFP at t
     hb, ha = csr_window({**p, "tfp_window": p["mog_window"], "static_span": 0})  # MOG history
     pm = p["pm_step"] * p["pm_count"]
@@ -595,7 +706,11 @@ def _scratch(shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _history(
-    src: PackedWindow, center: int, p: Mapping[str, Any], active: np.ndarray | None = None
+    src: PackedWindow,
+    center: int,
+    p: Mapping[str, Any],
+    active: np.ndarray | None = None,
+    carried: Mapping[int, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """The whole-frame scan: the CSR history of MOG, DAISI at t, TFI and TFP at t.
 
@@ -609,12 +724,22 @@ def _history(
     history frames are its MOG frame at t, its DAISI is 0, and the ATSR scale of each history
     frame before t is summed over the active pixels' static region (the frame at t's over the
     whole static region, as without tiles: its rates set MOG's gain).
+
+    ``carried`` (window index of a frame's last step -> a CSR history frame of an earlier
+    output, :func:`_carried_ends`) stands in for the history frames within half a stride of
+    their ends; only the others, and the frame at t, are scanned. ``"ends"`` gives the
+    history's ends as used.
     """
     n, h, w = src.n, src.h, src.w
     ks = range(p["mog_frames"] - 1, -1, -1)
     ends = np.array(
         [center - k * p["mog_stride"] for k in ks if center - k * p["mog_stride"] >= 0], np.int64
     )
+    reused: dict[int, np.ndarray] = {}
+    all_ends = ends
+    if carried:
+        all_ends, reused = _carried_ends(ends, carried, int(p["mog_stride"]))
+        ends = np.array([e for e in all_ends if e not in reused], np.int64)
     span, m, dspan = int(p["T"]), int(p["max_isi"]), int(p["daisi_span"])
     theta = int(p["theta"])
     spans = [tfp_span(int(e), n, p["mog_window"], p["tfp_mode"]) for e in ends]
@@ -670,7 +795,9 @@ def _history(
     if not (ub >= theta).any():  # every pixel proven static in every history frame
         return {
             "words": (store, bases, lo, hi),
-            "rates": tfps[:k],  # static rates, in [0, 1] already
+            # static rates, in [0, 1] already
+            "rates": _with_carried(tfps[:k], ends, all_ends, reused, active),
+            "ends": all_ends,
             "coarse": np.zeros((h, w), bool),
             "tfi": lambda: _tfi_at(src, center, m),
             "tfp": tfp,
@@ -695,12 +822,51 @@ def _history(
     tfi = (1.0 / isi[-1]).astype(np.float32)
     return {
         "words": (store, bases, lo, hi),
-        "rates": rates,
+        "rates": _with_carried(rates, ends, all_ends, reused, active),
+        "ends": all_ends,
         "coarse": masks[-1],
         "tfi": lambda: tfi,
         "tfp": tfp,
         "daisi": daisi,
     }
+
+
+def _carried_ends(
+    ends: np.ndarray, carried: Mapping[int, np.ndarray], stride: int
+) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """The history's ends with carried frames in place: each end before t (``ends[:-1]``)
+    takes the unused carried frame whose end is nearest to it, within ``stride // 2`` steps
+    (ties: the earlier one); ``(ends as used, {end: carried frame})``. The frame at t is never
+    carried (its coarse mask, TFI and TFP at t come from the same scan)."""
+    out = ends.copy()
+    reused: dict[int, np.ndarray] = {}
+    have = sorted(c for c in carried if 0 <= c < int(ends[-1]))
+    for i, e in enumerate(ends[:-1].tolist()):
+        near = [c for c in have if abs(c - e) <= stride // 2 and c not in reused]
+        if near:
+            c = min(near, key=lambda c: (abs(c - e), c))
+            reused[c] = carried[c]
+            out[i] = c
+    return out, reused
+
+
+def _with_carried(
+    rates: np.ndarray,
+    ends: np.ndarray,
+    all_ends: np.ndarray,
+    reused: Mapping[int, np.ndarray],
+    active: np.ndarray | None,
+) -> np.ndarray:
+    """The history frames at ``all_ends``: the scanned ``rates`` (one per ``ends``) and the
+    ``reused`` ones, oldest first. Outside ``active`` a carried frame takes the frame at t, as
+    a scanned one does there (:func:`_history`)."""
+    if not reused:
+        return rates
+    at = {int(e): i for i, e in enumerate(ends.tolist())}
+    out = np.stack([reused[e] if e in reused else rates[at[e]] for e in all_ends.tolist()])
+    if active is not None:
+        np.copyto(out[:-1], out[-1], where=~active)
+    return out
 
 
 def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
@@ -721,7 +887,11 @@ def _tfi_at(src: PackedWindow, center: int, m: int) -> np.ndarray:
 
 
 def fine_stage(
-    window: np.ndarray | PackedWindow, center: int, seed: int, p: Mapping[str, Any]
+    window: np.ndarray | PackedWindow,
+    center: int,
+    seed: int,
+    p: Mapping[str, Any],
+    memo: MutableMapping[str, Any] | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The whole CFSR pipeline on one window; returns ``(rate, {"coarse", "fine"})``.
 
@@ -733,9 +903,18 @@ def fine_stage(
     and PatchMatch on every pixel, then the same output rule (TFP where the fine mask is empty,
     ATSR with the fine mask otherwise), so the two differ only where PatchMatch's propagation
     from pixels outside the mask changes a match.
+
+    ``p`` runs under its ``quality`` tier (:func:`effective_params`). ``seed`` is the absolute
+    step of t (PatchMatch's draws are keyed by it). ``memo`` (a dict kept for one stream) carries
+    work from the previous output to this one when :func:`carry_groups`' rule joins them (the
+    same span of ``carry_span`` steps, at most ``carry_gap`` after it): its CSR history frames
+    stand in for this output's within half a stride (:func:`_carried_ends`). Without it, or
+    for the first output of a group, the frame is the isolated one.
     """
+    p = effective_params(p)
     src = window if isinstance(window, PackedWindow) else PackedWindow.from_frames(window)
     n, h, w = src.n, src.h, src.w
+    carried = _carry_in(memo, int(seed), center, p)
     adaptive = bool(p.get("adaptive", True))
     # 0. static gate: counts unchanged over the last two spans -> the TFP, nothing else to do
     pa, pb = tfp_span(center, n, static_length(p), p["tfp_mode"])
@@ -748,6 +927,7 @@ def fine_stage(
             counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
             tfp = counts / np.float32(max(1, pb - pa))
         none = np.zeros((h, w), bool)
+        _carry_out(memo, int(seed), center, p, None)
         return np.clip(tfp, 0.0, 1.0).astype(np.float32), {"coarse": none, "fine": none.copy()}
     # the gate per tile: tiles whose counts (and their neighbours') did not change are static
     active = None
@@ -756,8 +936,9 @@ def fine_stage(
         if active is not None and active.all():
             active = None
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
-    hs = _history(src, center, p, active)
+    hs = _history(src, center, p, active, carried)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
+    _carry_out(memo, int(seed), center, p, dict(zip(hs["ends"].tolist(), rates, strict=True)))
     tfi_at_t = hs["tfi"]
     sharp = None  # Eq. 9's f under mog_sides = both (_Sharp)
     if uses_steady(p) or two_sided(p):  # the intervals around t: steady coarse mask, static
@@ -898,6 +1079,45 @@ def fine_stage(
     # 6. ATSR (Eq. 7)
     rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
     return rate, masks
+
+
+class _Carry(NamedTuple):
+    """What an output leaves in the memo for the next one (:func:`fine_stage`)."""
+
+    t: int  #: absolute step of the output
+    key: tuple  #: its effective parameters: another set carries nothing
+    frames: dict[int, np.ndarray]  #: absolute last step -> CSR history frame (H, W) float32
+
+
+def _carry_key(p: Mapping[str, Any]) -> tuple:
+    return tuple(sorted((k, v) for k, v in p.items() if not k.startswith("carry_")))
+
+
+def _carry_in(
+    memo: MutableMapping[str, Any] | None, t: int, center: int, p: Mapping[str, Any]
+) -> dict[int, np.ndarray] | None:
+    """The previous output's history frames (window indices -> frame) when output step ``t``
+    continues from it (:func:`_continues`), else None."""
+    old = None if memo is None else memo.get("cfsr")
+    if not isinstance(old, _Carry) or not _continues(old.t, t, p) or old.key != _carry_key(p):
+        return None
+    shift = t - center  # absolute step of window index 0
+    return {a - shift: f for a, f in old.frames.items()}
+
+
+def _carry_out(
+    memo: MutableMapping[str, Any] | None,
+    t: int,
+    center: int,
+    p: Mapping[str, Any],
+    frames: Mapping[int, np.ndarray] | None,
+) -> None:
+    """Leave this output's history frames (window index -> frame; None: none) in ``memo``."""
+    if memo is None or int(p.get("carry_span", 0)) <= 0:
+        return
+    shift = t - center
+    kept = {} if frames is None else {e + shift: f for e, f in frames.items()}
+    memo["cfsr"] = _Carry(t, _carry_key(p), kept)
 
 
 class _Sharp(NamedTuple):
@@ -1074,14 +1294,27 @@ def _future_objects(
     return keep
 
 
-def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    rate, masks = fine_stage(window, center, int(start) + int(center), p)
+def _compute(
+    window: np.ndarray,
+    center: int,
+    start: int,
+    p: Mapping[str, Any],
+    memo: MutableMapping[str, Any] | None = None,
+) -> Output:
+    rate, masks = fine_stage(window, center, int(start) + int(center), p, memo)
     return Output(rate, masks)
 
 
-def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
+def _compute_packed(
+    packed,
+    layout,
+    center: int,
+    start: int,
+    p: Mapping[str, Any],
+    memo: MutableMapping[str, Any] | None = None,
+) -> Output:
     src = PackedWindow.from_packed(packed, layout)
-    rate, masks = fine_stage(src, center, int(start) + int(center), p)
+    rate, masks = fine_stage(src, center, int(start) + int(center), p, memo)
     return Output(rate, masks)
 
 
@@ -1096,5 +1329,7 @@ register(
         masks=("coarse", "fine"),
         presets=FINE_PRESETS,
         reference="CFSR paper Eq. 3-14 (coarse and fine stages)",
+        recurrent=True,
+        groups=carry_groups,
     )
 )

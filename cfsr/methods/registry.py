@@ -11,7 +11,7 @@ streaming path (:class:`cfsr.StreamingReconstructor`) give identical numbers by 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, MutableMapping
+from collections.abc import Callable, Iterable, Mapping, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -206,11 +206,14 @@ class Method:
         ``compute`` computed straight from packed frames (no unpacking). When present, the
         library and the streaming reconstructor use it; tests check both agree exactly.
     recurrent : bool
-        The method keeps a state over steps (TFSTP's synapses). Its ``compute`` and
-        ``compute_packed`` take a keyword ``memo``: a dict the caller keeps for one stream
+        The method keeps a state over steps. Its ``compute`` and ``compute_packed`` take a
+        keyword ``memo``: a dict the caller keeps for one stream
         (:class:`~cfsr.streaming.StreamingReconstructor`, one ``reconstruct`` call), in which
-        outputs close together continue a state instead of rebuilding it. The result is the
-        same with or without it.
+        outputs close together continue a state instead of rebuilding it. TFSTP's result is
+        the same with or without it; CFSR's carried outputs differ slightly from isolated ones
+        (under 0.1 dB, docs/methods.md): for them the contract is :meth:`carry_groups`.
+    groups : callable, optional
+        ``(times, params) -> list of lists of steps``: :meth:`carry_groups` for this method.
     max_window : int, optional
         Most steps ``before + after`` (default: see :attr:`max_span`).
     """
@@ -226,6 +229,22 @@ class Method:
     compute_packed: PackedComputeFn | None = None
     recurrent: bool = False
     max_window: int | None = None
+    groups: Callable[[Iterable[int], Mapping[str, Any]], list[list[int]]] | None = None
+
+    def carry_groups(self, times: Iterable[int], params: Mapping[str, Any]) -> list[list[int]]:
+        """The output steps ``times`` (sorted, deduplicated) split into groups to run in
+        order, each with one ``memo`` emptied before it: the first output of a group is the
+        isolated one, the others may continue from the output before them. The groups
+        depend only on ``times`` and ``params``, so results do not depend on how groups are
+        shared between processes. Without a rule of its own (``groups``), a recurrent method
+        (identical results either way) keeps all outputs in one group and any other method
+        puts each output alone."""
+        ts = sorted({int(t) for t in times})
+        if self.groups is not None:
+            return self.groups(ts, params)
+        if self.recurrent:
+            return [ts] if ts else []
+        return [[t] for t in ts]
 
     def run_window(
         self,
