@@ -5,6 +5,7 @@ the USB camera (pyusb); replay and simulator sources need only the base install.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -34,12 +35,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", action="store_true", help="overwrite OUTPUT")
 
 
+def _writer(out: Path, info, meta: dict, *, force: bool):
+    """The output's writer: created exclusively and never through a link (a name that
+    appeared meanwhile, or a dangling link planted there, is refused); ``force`` removes
+    what is there first (the link itself, not what it points to)."""
+    from service.recorder import FolderDatWriter
+
+    folder = out.resolve().parent if not out.is_symlink() else out.absolute().parent
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        if force:
+            for name in (out.name, out.name + ".json"):
+                try:
+                    os.unlink(name, dir_fd=fd)
+                except FileNotFoundError:
+                    pass
+        try:
+            return FolderDatWriter(fd, out.name, info.layout, rate_hz=info.rate_hz, meta=meta,
+                                   display_path=out)
+        except FileExistsError:
+            raise ValueError(f"{out} (or its sidecar) exists (use --force to overwrite)") from None
+    finally:
+        os.close(fd)
+
+
 def run(args: argparse.Namespace) -> int:
-    from cfsr.datfile import DatWriter
     from driver.source import SourceEnded
 
     out: Path = args.output
-    if out.exists() and not args.force:
+    if os.path.lexists(out) and not args.force:
         raise ValueError(f"{out} exists (use --force to overwrite)")
     if args.usb:
         from cfsr.cli._extras import require_extra
@@ -77,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         meta = {"source": info.to_dict()}
         if info.meta.get("gain"):
             meta["gain"] = info.meta["gain"]
-        with DatWriter(out, info.layout, rate_hz=info.rate_hz, meta=meta) as wr:
+        with _writer(out, info, meta, force=args.force) as wr:
             next_index = None
             while got < want:
                 try:
