@@ -23,6 +23,9 @@ from cfsr.simulate import (
 
 H, W = 48, 64
 MOVING = ("disk", "fan", "car", "lowlight", "dim", "noisy", "blades")
+# moving mounts: the motion mask is where the motion is visible, not every pixel that changes
+# (tests/test_simulate_scenes.py)
+MOUNTS = ("vibrate", "vibrate_mover", "drift", "pan")
 
 
 def test_scene_names_match_cli_list():
@@ -40,7 +43,7 @@ def test_scene_intensity_and_mask(name):
     assert mask.dtype == np.bool_ and mask.shape == (H, W)
     assert s.describe()["name"] == name
     json.dumps(s.describe())  # JSON-ready (goes to the sidecar)
-    if name in MOVING:
+    if name in MOVING + MOUNTS:
         assert mask.any() and s.moving
     else:
         assert not mask.any() and not s.moving

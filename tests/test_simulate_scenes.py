@@ -1,14 +1,29 @@
-"""The scenes users meet (issue 13): ``dim``, ``noisy`` (sensor noise, hot pixels), ``blades``."""
+"""The scenes users meet: ``dim``, ``noisy`` (sensor noise, hot pixels), ``blades``; and the
+scenes whose motion is small, slow or everywhere: a vibrating mount (with and without a fast
+mover in front), a drift, a slow pan (a :class:`~cfsr.simulate.Mount` layer: the still scene
+seen shifted by ``offsets(t)``; its motion mask is where a one-pixel shift changes the
+intensity by at least ``edge``)."""
 
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
 
 from cfsr.cli import main
-from cfsr.simulate import NOISE_PRESETS, Noise, Scene, Sensor, make_scene, simulate
+from cfsr.simulate import (
+    NOISE_PRESETS,
+    SCENES,
+    Mount,
+    Noise,
+    Scene,
+    Sensor,
+    make_scene,
+    simulate,
+)
+from cfsr.simulate.scenes import drift, vibration
 
 H, W = 48, 64
 NEW = ("dim", "noisy", "blades")
@@ -227,3 +242,113 @@ def test_cli_simulate_noisy_defaults_to_its_noise(tmp_path, capsys):
     )
     side2 = json.loads((tmp_path / "m.dat.json").read_text())
     assert not any(side2["simulator"]["noise"].values())
+
+
+# --------------------------------------------------------------------------- moving mounts
+
+MOUNT_SCENES = ("vibrate", "vibrate_mover", "drift", "pan")
+
+
+@pytest.mark.parametrize("name", MOUNT_SCENES)
+def test_mount_scenes_are_listed_and_move(name):
+    assert name in SCENES
+    s = make_scene(name, height=H, width=W)
+    assert s.moving and isinstance(s.layers[0], Mount)
+    img, mask = s.intensity_and_mask(700)
+    assert img.shape == (H, W) and 0.0 <= img.min() and img.max() <= 1.0
+    # textured, not everywhere: the visible motion lies on the edges of the still scene
+    assert 0.05 < mask.mean() < 0.95, mask.mean()
+
+
+@pytest.mark.parametrize(("amplitude", "hz"), [(0.5, 20.0), (1.0, 50.0), (3.0, 200.0)])
+def test_vibration_path(amplitude, hz):
+    s = make_scene("vibrate", height=H, width=W, amplitude=amplitude, hz=hz)
+    mount = s.layers[0]
+    period = 40_000 / hz  # steps
+    t = np.arange(0, int(4 * period))
+    dy, dx = mount.offsets(0, t.size)
+    assert np.abs(dx).max() == pytest.approx(amplitude, rel=1e-3)
+    assert np.abs(dy).max() == pytest.approx(amplitude / 2, rel=1e-3)
+    # periodic at hz, and its peak speed is A w px/step
+    k = int(round(period))
+    if abs(k - period) < 1e-9:
+        np.testing.assert_allclose(dx[k:], dx[:-k], atol=1e-9)
+    w = 2 * math.pi * hz / 40_000
+    assert np.abs(np.diff(dx)).max() == pytest.approx(amplitude * w, rel=0.01)
+    assert s.describe()["layers"][0]["peak_px_per_step"] == pytest.approx(amplitude * w)
+
+
+def test_a_whole_pixel_shift_moves_the_picture_by_one_pixel():
+    plane = make_scene("static", height=H, width=W).background
+    m = Mount(plane, drift(1.0, 0.0))  # one pixel right per step
+    out = np.empty((3, H, W), np.float32)
+    m.render(0, 3, out, np.zeros((0, 0, 0), np.float32), 0, 0)
+    np.testing.assert_allclose(out[0], plane, atol=1e-6)
+    # pixel x at step 2 shows plane point x + 2
+    np.testing.assert_allclose(out[2][:, :-2], plane[:, 2:], atol=1e-6)
+
+
+@pytest.mark.parametrize("speed", [0.001, 0.005, 0.02])
+def test_drift_speed(speed):
+    s = make_scene("drift", height=H, width=W, speed=speed, angle=30.0)
+    dy, dx = s.layers[0].offsets(1000, 2)
+    assert math.hypot(dy[1] - dy[0], dx[1] - dx[0]) == pytest.approx(speed)
+    assert dy[0] == pytest.approx(1000 * speed * 0.5)
+
+
+@pytest.mark.parametrize("name", MOUNT_SCENES)
+def test_changes_outside_the_mask_are_below_the_edge(name):
+    # a shift of less than a pixel moves a pixel outside the visible-motion mask by less than
+    # the edge step (bilinear: at most the largest neighbour difference)
+    s = make_scene(name, height=H, width=W)
+    a, ma = s.intensity_and_mask(500)
+    b, mb = s.intensity_and_mask(530)
+    shift = np.hypot(
+        *(
+            np.subtract(
+                *[
+                    np.asarray(o)[:, 0]
+                    for o in (s.layers[0].offsets(530, 1), s.layers[0].offsets(500, 1))
+                ]
+            )
+        )
+    )
+    assert shift < 1.0
+    out = ~(ma | mb)
+    assert np.abs(a - b)[out].max() < s.layers[0].edge
+    assert (np.abs(a - b)[ma | mb] > 1e-6).any()
+
+
+def test_vibrating_mover_in_front():
+    s = make_scene("vibrate_mover", height=H, width=W)
+    assert [ly.describe()["kind"] for ly in s.layers] == ["mount", "disk"]
+    mask_fast = make_scene("vibrate_mover", height=H, width=W).motion_mask(300)
+    mask_still = make_scene("vibrate", height=H, width=W).motion_mask(300)
+    assert (mask_fast & ~mask_still).sum() > 20  # the disk's pixels
+
+
+@pytest.mark.parametrize(
+    ("opts", "match"),
+    [({"amplitude": 0.0}, "amplitude"), ({"hz": -1.0}, "hz"), ({"speed": 2.0}, "speed")],
+)
+def test_bad_options(opts, match):
+    name = "drift" if "speed" in opts else "vibrate"
+    with pytest.raises(ValueError, match=match):
+        make_scene(name, height=H, width=W, **opts)
+
+
+def test_counts_follow_the_moving_ground_truth():
+    # the sensor integrates exactly the rendered frames: counts over the run match the summed
+    # ground-truth rates within one spike at every pixel (the simulator's own invariant)
+    n = 300
+    sim = simulate("vibrate", n, seed=4, height=H, width=W, start=200)
+    frames = sim.scene.render_roi(200, n)[0]
+    rates = np.stack([sim.sensor.rate_from_intensity(f) for f in frames])
+    counts = sim.spikes.sum(0, dtype=np.int64)
+    assert np.abs(counts - rates.sum(0, dtype=np.float64)).max() < 1.0 + 1e-3
+
+
+def test_vibration_helper_is_elliptic():
+    dy, dx = vibration(2.0, 100.0)(np.arange(400, dtype=np.float64))
+    assert np.abs(dx).max() == pytest.approx(2.0, rel=1e-3)
+    assert np.abs(dy).max() == pytest.approx(1.0, rel=1e-3)

@@ -8,7 +8,20 @@ from pathlib import Path
 
 # Kept in sync with cfsr.simulate.SCENES (checked by the tests); listed here so that
 # ``cfsr --help`` does not import numba.
-SCENE_NAMES = ("disk", "fan", "car", "static", "lowlight", "dim", "noisy", "blades")
+SCENE_NAMES = (
+    "disk",
+    "fan",
+    "car",
+    "static",
+    "lowlight",
+    "dim",
+    "noisy",
+    "blades",
+    "vibrate",
+    "vibrate_mover",
+    "drift",
+    "pan",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

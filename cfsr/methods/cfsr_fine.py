@@ -104,6 +104,7 @@ from cfsr.methods.mog import mog_background, mog_objects, to_u8
 from cfsr.methods.patchmatch import finish_padding, padded_guides, patchmatch_fuse
 from cfsr.methods.pmframes import TILE, match_reach, pm_frames, pm_tiles
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
+from cfsr.methods.slowmotion import SLOW_PARAMS, slow_fuse, slow_reach
 from cfsr.methods.staticgate import active_tiles, span_counts, span_isi_rate, static_gate
 from cfsr.methods.steady import steady_range
 from cfsr.methods.still import still_pixels
@@ -341,6 +342,8 @@ FINE_PARAMS: dict[str, Param] = {
         minimum=1,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
+    # windows as long as the motion allows, per pixel (cfsr.methods.slowmotion)
+    **SLOW_PARAMS,
 }
 
 FINE_PRESETS: dict[str, dict[str, Any]] = {
@@ -356,12 +359,14 @@ FINE_PRESETS: dict[str, dict[str, Any]] = {
         "pm_count": 10,
         "pm_guide": 0,
         "pm_sigma": 0.0,
+        "slow_reach": 0,
     },
     "simulated": {
         **CSR_PRESETS["simulated"],
         "mog_estimator": "tfp",
         "mog_sides": "past",
         "still_reach": 0,
+        "slow_reach": 0,
     },
 }
 
@@ -455,6 +460,7 @@ def cfsr_window(p: Mapping[str, Any]) -> tuple[int, int]:
     if p.get("still_reach", 0) > 0:  # the still-pixel proof's range
         before = max(before, int(p["still_reach"]))
         after = max(after, int(p["still_reach"]))
+    before, after = max(before, slow_reach(p)), max(after, slow_reach(p))  # slow-motion windows
     if p["adaptive"] and p["static_tol"] >= 0:  # the static gate's two spans end with the TFP's
         _, tfp_end = tfp_span(0, 1 << 62, static_length(p), p["tfp_mode"])  # steps after 0, +1
         before = max(before, 2 * p["static_window"] - tfp_end)
@@ -1024,7 +1030,7 @@ def fine_stage(
         # the static estimate, the car lost 1.1 dB (docs/methods.md, "Two-sided objects")
         region = region | ghosts
     if adaptive and not region.any():
-        return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
+        return slow_fuse(src, center, np.clip(tfp, 0.0, 1.0).astype(np.float32), None, p), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
     # patch's reach of a fine-mask pixel)
     if adaptive:
@@ -1071,14 +1077,15 @@ def fine_stage(
         padded=padded,
     )
     if not region.any():  # always-full pipeline on a static window: the same TFP output
-        return np.clip(tfp, 0.0, 1.0).astype(np.float32), masks
+        return slow_fuse(src, center, np.clip(tfp, 0.0, 1.0).astype(np.float32), None, p), masks
     tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     crop = dyn[y0:y1, x0:x1]
     crop[domain] = refined[domain]
     # 6. ATSR (Eq. 7)
     rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
-    return rate, masks
+    # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
+    return slow_fuse(src, center, rate, used, p), masks
 
 
 class _Carry(NamedTuple):

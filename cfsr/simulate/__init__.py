@@ -11,7 +11,7 @@ free.
 ((200, 48, 64), 0.5)
 """
 
-from cfsr.simulate.scenes import SCENES, Rotor, Scene, Slider, make_scene
+from cfsr.simulate.scenes import SCENES, Mount, Rotor, Scene, Slider, drift, make_scene, vibration
 from cfsr.simulate.sensor import (
     DEFAULT_GAIN,
     DEFAULT_THRESHOLD,
@@ -32,6 +32,7 @@ __all__ = [
     "NOISE_PRESETS",
     "SCENES",
     "GroundTruth",
+    "Mount",
     "Noise",
     "Rotor",
     "Scene",
@@ -39,8 +40,10 @@ __all__ = [
     "Simulation",
     "Slider",
     "gt_path",
+    "drift",
     "load_ground_truth",
     "make_scene",
     "simulate",
     "simulate_to_dat",
+    "vibration",
 ]

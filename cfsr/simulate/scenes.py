@@ -25,7 +25,7 @@ from numba import njit, prange
 from cfsr.layout import STEP_RATE_HZ
 from cfsr.simulate.textures import texture
 
-__all__ = ["Scene", "Rotor", "Slider", "SCENES", "make_scene"]
+__all__ = ["Scene", "Rotor", "Slider", "Mount", "SCENES", "make_scene", "vibration", "drift"]
 
 _TWO_PI = 2.0 * math.pi
 
@@ -201,6 +201,53 @@ def _render_slider(out, cov, oy, ox, offy, offx, tex_pm, alpha):  # pragma: no c
     return out
 
 
+@njit(cache=True, inline="always")
+def _reflect(u, n):  # pragma: no cover - numba
+    """Coordinate ``u`` folded into ``[0, n - 1]`` by mirroring at the edges (an endless
+    plane with no seam in intensity)."""
+    if n <= 1:
+        return 0.0
+    period = 2.0 * (n - 1)
+    u = u - math.floor(u / period) * period
+    return period - u if u > n - 1 else u
+
+
+@njit(cache=True, inline="always")
+def _plane_at(tex, v, u):  # pragma: no cover - numba
+    h, w = tex.shape
+    return _bilinear_clamped(tex, _reflect(v, h), _reflect(u, w))
+
+
+@njit(parallel=True, cache=True)
+def _render_plane(out, cov, oy, ox, dy, dx, tex, edge):  # pragma: no cover - numba
+    """Overwrite ``out`` with the plane ``tex`` seen shifted by ``(dy[k], dx[k])`` at step k.
+
+    Frame pixel ``(oy + i, ox + j)`` shows plane point ``(oy + i + dy[k], ox + j + dx[k])``
+    (bilinear, mirrored beyond the plane's edges). ``cov`` (same shape, or empty) receives 1
+    where the motion is visible: the intensity differs from a 4-neighbour's (a one-pixel
+    shift) by at least ``edge``.
+    """
+    n, rh, rw = out.shape
+    want_cov = cov.shape[0] == n
+    for i in prange(rh):
+        for k in range(n):
+            v = oy + i + dy[k]
+            for j in range(rw):
+                u = ox + j + dx[k]
+                val = _plane_at(tex, v, u)
+                out[k, i, j] = val
+                if want_cov:
+                    d = max(
+                        abs(_plane_at(tex, v - 1.0, u) - val),
+                        abs(_plane_at(tex, v + 1.0, u) - val),
+                        abs(_plane_at(tex, v, u - 1.0) - val),
+                        abs(_plane_at(tex, v, u + 1.0) - val),
+                    )
+                    if d >= edge:
+                        cov[k, i, j] = 1.0
+    return out
+
+
 # --------------------------------------------------------------------------- layers
 
 
@@ -362,7 +409,88 @@ class Slider:
         }
 
 
-Layer = Rotor | Slider
+@dataclass
+class Mount:
+    """The camera's own motion: the whole still scene seen through a moving mount.
+
+    The scene is a plane (``texture``, frame pixels) that the camera sees shifted by
+    ``offsets(t)`` pixels at step t (a vibration, a drift, a pan); the plane is mirrored
+    beyond its edges, so any shift shows a continuous scene. Composited first, it replaces the
+    background everywhere; movers in front of it come after it in the layer list.
+
+    The motion mask of a moving mount is where the motion is *visible*: pixels whose
+    intensity differs by at least ``edge`` from a 4-neighbour's at the current shift (a
+    one-pixel shift would change them by that much). Elsewhere (flat regions) a shift of
+    less than a pixel changes the intensity by less than ``edge``.
+
+    Parameters
+    ----------
+    texture : ndarray (H, W) float32
+        The still scene in [0, 1], in frame coordinates at zero shift.
+    path : callable
+        ``path(t) -> (dy, dx)``: the shift in pixels at the steps ``t`` (float64 array).
+    edge : float
+        Intensity step (0..1) that makes a pixel's motion visible (default 0.02: 5 display
+        levels of 255).
+    """
+
+    texture: np.ndarray
+    path: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    edge: float = 0.02
+    label: str = "mount"
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.texture = np.ascontiguousarray(self.texture, dtype=np.float32)
+
+    def bbox(self, height: int, width: int) -> tuple[int, int, int, int]:
+        return 0, height, 0, width
+
+    def offsets(self, t0: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Shift ``(dy, dx)`` in pixels at steps ``t0 .. t0 + n - 1`` (float64 arrays)."""
+        t = np.arange(n, dtype=np.float64) + float(t0)
+        dy, dx = self.path(t)
+        return (
+            np.ascontiguousarray(np.broadcast_to(dy, t.shape), np.float64),
+            np.ascontiguousarray(np.broadcast_to(dx, t.shape), np.float64),
+        )
+
+    def render(self, t0: int, n: int, out: np.ndarray, cov: np.ndarray, oy: int, ox: int) -> None:
+        dy, dx = self.offsets(t0, n)
+        _render_plane(out, cov, float(oy), float(ox), dy, dx, self.texture, float(self.edge))
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "mount", "label": self.label, "edge": self.edge, **self.info}
+
+
+def vibration(
+    amplitude: float, hz: float, *, phase: float = 0.0
+) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """A mount vibrating on an ellipse: ``dx = A sin(w t)``, ``dy = A/2 sin(w t + pi/3)``,
+    ``w = 2 pi hz / 40,000`` rad/step (A in pixels); its peak speed is ``A w`` px/step."""
+    a = float(amplitude)
+    w = _TWO_PI * float(hz) / STEP_RATE_HZ
+
+    def path(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return 0.5 * a * np.sin(w * t + phase + math.pi / 3), a * np.sin(w * t + phase)
+
+    return path
+
+
+def drift(
+    speed: float, angle_deg: float = 0.0
+) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """A constant drift of ``speed`` px/step along ``angle_deg`` (0: rightwards, 90: down)."""
+    v = float(speed)
+    a = math.radians(float(angle_deg))
+
+    def path(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return v * math.sin(a) * t, v * math.cos(a) * t
+
+    return path
+
+
+Layer = Rotor | Slider | Mount
 
 
 # --------------------------------------------------------------------------- scene
@@ -710,6 +838,98 @@ def _lowlight_scene(h: int, w: int, *, illumination: float = 0.1, **kw: Any) -> 
     return _car_scene(h, w, name="lowlight", illumination=illumination, **kw)
 
 
+def _still_plane(h: int, w: int) -> np.ndarray:
+    """The still scene the mount scenes look at: the static scene's image."""
+    return _disk_scene(h, w, rpm=0.0).intensity(0)
+
+
+def _vibrate_scene(
+    h: int,
+    w: int,
+    *,
+    amplitude: float = 1.0,
+    hz: float = 50.0,
+    mover: bool = False,
+    rpm: float = 2000.0,
+    name: str = "vibrate",
+) -> Scene:
+    if not 0.0 < float(amplitude) <= 64.0:
+        raise ValueError(f"amplitude must be in (0, 64] pixels, got {amplitude}")
+    if not 0.0 < float(hz) <= STEP_RATE_HZ / 4:
+        raise ValueError(f"hz must be in (0, {STEP_RATE_HZ / 4:g}], got {hz}")
+    peak = _TWO_PI * float(hz) / STEP_RATE_HZ * float(amplitude)
+    mount = Mount(
+        _still_plane(h, w),
+        vibration(amplitude, hz),
+        label="vibration",
+        info={"amplitude_px": float(amplitude), "hz": float(hz), "peak_px_per_step": peak},
+    )
+    layers: list[Layer] = [mount]
+    what = f"still scene on a mount vibrating {amplitude:g} px at {hz:g} Hz"
+    if mover:
+        m = min(h, w)
+        r = 0.2 * m
+        d = 2 * math.ceil(r) + 3
+        layers.append(
+            Rotor(
+                texture("coffee", d, d, lo=0.1, hi=1.0),
+                cy=0.3 * h,
+                cx=0.75 * w,
+                radius=r,
+                rpm=rpm,
+                label="disk",
+            )
+        )
+        what += f", a textured disk (coffee) spinning at {rpm:g} rpm in front"
+    return Scene(
+        name,
+        mount.texture,
+        layers,
+        summary=what,
+        info={"textures": {"background": "brick", "disk": "camera"}},
+    )
+
+
+def _vibrate_mover_scene(h: int, w: int, **kw: Any) -> Scene:
+    return _vibrate_scene(h, w, mover=True, name="vibrate_mover", **kw)
+
+
+def _drift_scene(h: int, w: int, *, speed: float = 0.005, angle: float = 30.0) -> Scene:
+    if not 0.0 < float(speed) <= 1.0:
+        raise ValueError(f"speed must be in (0, 1] px/step, got {speed}")
+    mount = Mount(
+        _still_plane(h, w),
+        drift(speed, angle),
+        label="drift",
+        info={"speed_px_per_step": float(speed), "angle_deg": float(angle)},
+    )
+    return Scene(
+        "drift",
+        mount.texture,
+        [mount],
+        summary=f"still scene drifting {speed:g} px/step at {angle:g} degrees",
+        info={"textures": {"background": "brick", "disk": "camera"}},
+    )
+
+
+def _pan_scene(h: int, w: int, *, speed: float = 0.02) -> Scene:
+    if not 0.0 < float(speed) <= 1.0:
+        raise ValueError(f"speed must be in (0, 1] px/step, got {speed}")
+    mount = Mount(
+        texture("rocket", h, w, lo=0.05, hi=0.95),
+        drift(speed, 0.0),
+        label="pan",
+        info={"speed_px_per_step": float(speed)},
+    )
+    return Scene(
+        "pan",
+        mount.texture,
+        [mount],
+        summary=f"a landscape (rocket) seen by a camera panning {speed:g} px/step",
+        info={"textures": {"background": "rocket"}},
+    )
+
+
 _BUILDERS: dict[str, Callable[..., Scene]] = {
     "disk": _disk_scene,
     "fan": _fan_scene,
@@ -719,6 +939,10 @@ _BUILDERS: dict[str, Callable[..., Scene]] = {
     "dim": _dim_scene,
     "noisy": _noisy_scene,
     "blades": _blades_scene,
+    "vibrate": _vibrate_scene,
+    "vibrate_mover": _vibrate_mover_scene,
+    "drift": _drift_scene,
+    "pan": _pan_scene,
 }
 
 #: Scene names with a one-line description (iterate it for the names).
@@ -731,6 +955,10 @@ SCENES: dict[str, str] = {
     "dim": "the disk scene (2000 rpm) at 1/10 light: true rates 0.005-0.05 spikes/step",
     "noisy": "the disk scene (2000 rpm) seen by a noisy sensor (noise preset 'sensor')",
     "blades": "4 thin (3 px) blades rotating at 2600 rpm over a static background",
+    "vibrate": "the static scene on a mount vibrating 1 px at 50 Hz (motion everywhere)",
+    "vibrate_mover": "the vibrating mount with a disk spinning at 2000 rpm in front",
+    "drift": "the static scene drifting 0.005 px/step (slow motion everywhere)",
+    "pan": "a landscape seen by a camera panning 0.02 px/step",
 }
 
 
@@ -741,7 +969,7 @@ def make_scene(name: str, height: int = 250, width: int = 400, **options: Any) -
     ----------
     name : str
         One of :data:`SCENES` (``disk``, ``fan``, ``car``, ``static``, ``lowlight``, ``dim``,
-        ``noisy``, ``blades``).
+        ``noisy``, ``blades``, ``vibrate``, ``vibrate_mover``, ``drift``, ``pan``).
     height, width : int
         Frame size in pixels (default 400 x 250, the sensor). Object sizes scale with the
         frame; speeds do not (rpm, and pixels per step for the car).
@@ -750,7 +978,9 @@ def make_scene(name: str, height: int = 250, width: int = 400, **options: Any) -
         blades=4, blade_width=0)``, ``car(speed_kmh=100, px_per_m=100)``,
         ``lowlight(illumination=0.1, speed_kmh=100, px_per_m=100)``, ``dim(illumination=0.1,
         rpm=2000, radius=None)``, ``noisy(noise="sensor", rpm=2000, radius=None)``,
-        ``blades(rpm=2600, blades=4, blade_width=3)``.
+        ``blades(rpm=2600, blades=4, blade_width=3)``, ``vibrate(amplitude=1, hz=50)``
+        (pixels, Hz), ``vibrate_mover(amplitude=1, hz=50, rpm=2000)``, ``drift(speed=0.005,
+        angle=30)`` (px/step, degrees), ``pan(speed=0.02)`` (px/step).
 
     Returns
     -------

@@ -1,0 +1,140 @@
+"""Windows as long as the motion allows (cfsr.methods.slowmotion) and CFSR's use of them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import cfsr
+from cfsr._words import PackedWindow
+from cfsr.methods.slowmotion import HALVES, slow_fuse, slow_rates
+from cfsr.simulate import make_scene, simulate
+
+H, W = 48, 64
+
+
+def _if_pixel(rates: np.ndarray, phase: float = 0.3) -> np.ndarray:
+    """Spikes of an ideal integrate-and-fire pixel driven by ``rates`` (spikes/step)."""
+    pot = phase
+    out = np.zeros(rates.size, np.uint8)
+    for t, r in enumerate(rates):
+        pot += r
+        if pot >= 1.0:
+            pot -= 1.0
+            out[t] = 1
+    return out
+
+
+def _window(columns: list[np.ndarray]) -> PackedWindow:
+    return PackedWindow.from_frames(np.stack(columns, axis=1)[:, None, :].copy())
+
+
+@pytest.mark.parametrize("rate", [0.02, 0.13, 0.25, 0.37, 0.5, 0.93])
+def test_a_still_pixel_reaches_the_longest_window_with_its_rate(rate):
+    n = 801
+    src = _window([_if_pixel(np.full(n, rate), phase) for phase in (0.0, 0.4, 0.9)])
+    r, half, count = slow_rates(src, 400, np.ones((1, 3), bool), reach=192)
+    assert (half == 192).all()
+    # first-to-last rule over 385 steps: within one step of the whole intervals' span
+    np.testing.assert_allclose(r, rate, rtol=1.0 / (385 * rate - 2))
+    assert (np.abs(count - 385 * rate) < 1.0 + 1e-9).all()
+
+
+def test_a_change_shortens_the_window_on_either_side():
+    n = 801
+    step_before = np.where(np.arange(n) < 380, 0.2, 0.3)  # a change 20 steps before t
+    step_after = np.where(np.arange(n) < 430, 0.2, 0.3)  # 30 steps after t
+    symmetric = np.where(np.arange(n) < 400, 0.25, 0.5)  # at t: the centred mean hides it
+    src = _window([_if_pixel(x) for x in (step_before, step_after, symmetric)])
+    r, half, _ = slow_rates(src, 400, np.ones((1, 3), bool), reach=192)
+    assert 12 <= half[0, 0] <= 24 and 16 <= half[0, 1] <= 32, half
+    assert half[0, 2] < 8
+    np.testing.assert_allclose(r[0, :2], [0.3, 0.2], rtol=0.1)  # the rate on t's side
+
+
+def test_slow_drift_gets_a_longer_window_than_fast():
+    n = 801
+    t = np.arange(n)
+    slow = 0.3 + 0.05 * np.sin(2 * np.pi * t / 4000)  # a slow change: a long window
+    fast = 0.3 + 0.05 * np.sin(2 * np.pi * t / 80)
+    src = _window([_if_pixel(slow), _if_pixel(fast)])
+    _, half, _ = slow_rates(src, 400, np.ones((1, 2), bool), reach=192)
+    assert half[0, 0] >= 48 and half[0, 1] <= 24 and half[0, 0] > 2 * half[0, 1]
+
+
+def test_halves_stay_inside_the_window():
+    src = _window([_if_pixel(np.full(300, 0.25))])
+    _, half, _ = slow_rates(src, 100, np.ones((1, 1), bool), reach=192)
+    assert half[0, 0] == 100  # clipped to the window's start
+    with pytest.raises(ValueError, match="outside the window"):
+        slow_rates(src, 100, np.ones((1, 1), bool), reach=192, halves=[8, 150])
+    assert HALVES == tuple(sorted(HALVES))
+
+
+def test_only_candidates_are_estimated():
+    sim = simulate("static", 400, seed=1, height=H, width=W)
+    src = PackedWindow.from_frames(sim.spikes)
+    cand = np.zeros((H, W), bool)
+    cand[10:20, 5:30] = True
+    r, half, _ = slow_rates(src, 200, cand, reach=128)
+    assert (half[~cand] == 0).all() and (r[~cand] == 0).all()
+    assert (half[cand] == 128).all()
+    # the still scene's rates from their longest windows: within a 257-step window's error
+    gt = sim.gt_rate(200)
+    assert np.abs(r[cand] - gt[cand]).max() < 1.0 / 200
+
+
+def test_fuse_rules():
+    sim = simulate("vibrate", 600, seed=0, height=H, width=W)
+    src = PackedWindow.from_frames(sim.spikes)
+    rate = np.full((H, W), 0.123, np.float32)
+    p = {
+        "slow_reach": 128,
+        "slow_slack": 1.0,
+        "slow_min": 8,
+        "slow_intervals": 4,
+        "slow_fine_min": 32,
+        "slow_fine_intervals": 12,
+        "slow_fine_weight": 0.5,
+    }
+    assert slow_fuse(src, 300, rate, None, {**p, "slow_reach": 0}) is rate
+    slow, half, count = slow_rates(src, 300, np.ones((H, W), bool), reach=128)
+    out = slow_fuse(src, 300, rate, None, p)
+    took = (half >= 8) & (count - 1 >= 4)
+    assert took.any() and (~took).any()
+    np.testing.assert_array_equal(out[took], slow[took])
+    np.testing.assert_array_equal(out[~took], rate[~took])
+    fine = np.zeros((H, W), bool)
+    fine[:, : W // 2] = True
+    out = slow_fuse(src, 300, rate, fine, p)
+    inner = fine & (half >= 32) & (count - 1 >= 12)
+    np.testing.assert_allclose(out[inner], 0.5 * (slow[inner] + 0.123), rtol=1e-6)
+    np.testing.assert_array_equal(out[fine & ~inner], rate[fine & ~inner])
+    np.testing.assert_array_equal(out[~fine & took], slow[~fine & took])
+
+
+def _psnr(sim, rate, t, mask=None):
+    from cfsr.display import to_display
+    from cfsr.metrics import psnr
+
+    gt = to_display(sim.ideal_rate(t), gain=sim.rate_scale)
+    return psnr(gt, to_display(rate, gain=sim.rate_scale), mask=mask)
+
+
+@pytest.mark.parametrize("scene", ["vibrate", "drift"])
+def test_cfsr_with_slow_windows_beats_without_on_slow_motion(scene):
+    sim = simulate(scene, 900, seed=0, height=96, width=128)
+    t = 450
+    on = cfsr.reconstruct(sim.spikes, "cfsr", [t])[0]
+    off = cfsr.reconstruct(sim.spikes, "cfsr", [t], slow_reach=0)[0]
+    m = sim.motion_mask(t)
+    assert _psnr(sim, on, t) > _psnr(sim, off, t) + 1.0
+    assert _psnr(sim, on, t, m) > _psnr(sim, off, t, m) + 1.0
+
+
+def test_paper_presets_run_without_the_stage():
+    from cfsr.methods.cfsr_fine import FINE_PRESETS
+
+    assert all(pr["slow_reach"] == 0 for pr in FINE_PRESETS.values())
+    scene = make_scene("vibrate", height=H, width=W)
+    assert scene.moving
