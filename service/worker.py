@@ -397,7 +397,10 @@ class _Worker:
                 self.slow_first = 0.0
                 self.put("first_frame_since", 0.0)
                 self.put("fallback", 0.0)
-            if self._last_shown is not None and t <= self._last_shown:
+            # the step order holds within one config: a new config's first frame is shown
+            # even at an earlier or equal step (a method that looks further ahead, or any
+            # change on a paused replay, whose data end has not moved)
+            if not first and self._last_shown is not None and t <= self._last_shown:
                 self.bump("dropped_order")
                 continue
             if not first and time.monotonic() - task.arrival > LATE_S:
