@@ -21,7 +21,6 @@ __all__ = [
     "QUICK_GRID",
     "grid_specs",
     "pareto_front",
-    "plot_pareto",
     "method_fps",
     "pool_fps",
     "core_forecast",
@@ -83,62 +82,6 @@ def pareto_front(
 
 def _finite(v: Any) -> bool:
     return isinstance(v, (int, float)) and math.isfinite(v)
-
-
-def plot_pareto(
-    rows: Sequence[dict[str, Any]],
-    path: str,
-    *,
-    cost: str = "ms_per_frame",
-    score: str = "psnr_all",
-    title: str = "run time against error",
-) -> str:
-    """Scatter of cost (log ms per frame) against score per method, one panel per scene."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    scenes = sorted({r["scene"] for r in rows if _finite(r.get(score))})
-    if not scenes:
-        raise ValueError(f"no rows with a finite {score} to plot")
-    ncol = min(3, len(scenes))
-    nrow = math.ceil(len(scenes) / ncol)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 4.0 * nrow), squeeze=False)
-    for ax, scene in zip(axes.ravel(), scenes, strict=False):
-        sub = [r for r in rows if r["scene"] == scene and _finite(r.get(score))]
-        names = sorted({r["name"] for r in sub})
-        cmap = plt.get_cmap("tab10")
-        for i, name in enumerate(names):
-            pts = [r for r in sub if r["name"] == name]
-            ax.scatter(
-                [r[cost] for r in pts],
-                [r[score] for r in pts],
-                color=cmap(i % 10),
-                label=name,
-                s=30,
-            )
-            for r in pts:
-                label = r["method"].partition(":")[2]
-                if label:
-                    ax.annotate(label, (r[cost], r[score]), fontsize=6, alpha=0.7)
-        front = pareto_front(sub, cost=cost, score=score)
-        ax.plot(
-            [r[cost] for r in front], [r[score] for r in front], "k--", lw=0.8, label="Pareto front"
-        )
-        ax.set_xscale("log")
-        ax.set_xlabel("ms per output frame (log)")
-        ax.set_ylabel(score.replace("_", " ") + " (dB)" if "psnr" in score else score)
-        ax.set_title(scene)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    for ax in axes.ravel()[len(scenes) :]:
-        ax.axis("off")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 def time_call(fn: Callable[[], Any], *, min_time: float = 0.5, max_reps: int = 50) -> float:

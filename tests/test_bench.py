@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 
 from cfsr.bench import format_rows, pareto_front
@@ -34,6 +35,48 @@ def test_bench_quick_accuracy(tmp_path, capsys):
     assert (tmp_path / "pareto.png").stat().st_size > 10_000
     out = capsys.readouterr().out
     assert "PSNR all" in out and "pareto.png" in out
+
+
+def test_bench_without_matplotlib_skips_the_plot(tmp_path, capsys, monkeypatch):
+    """No cfsr[bench]: the run still gives its tables and JSON, and says in one line that the
+    plot was skipped and what to install (it does not refuse to start)."""
+    import cfsr.plots
+
+    monkeypatch.setattr(cfsr.plots, "have_matplotlib", lambda: False)
+    args = ["bench", "--quick", "--no-data", "-q", "--methods", "tfp", "--scenes", "static",
+            "--steps", "400", "--out", str(tmp_path)]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    skipped = [ln for ln in out.splitlines() if "plot skipped" in ln]
+    assert len(skipped) == 1 and "cfsr[bench]" in skipped[0]
+    assert (tmp_path / "accuracy.json").exists() and not (tmp_path / "pareto.png").exists()
+
+
+def test_plot_colours_are_fixed_per_method(tmp_path):
+    """A method keeps its colour across plots and variants; an unknown name keeps one too."""
+    pytest.importorskip("matplotlib", reason="the plots need cfsr[bench]")
+    from PIL import Image
+
+    from cfsr.plots import METHOD_COLOURS, method_colour, plot_metric_bars, plot_pareto
+
+    assert method_colour("cfsr:fast") == method_colour("cfsr") == METHOD_COLOURS["cfsr"]
+    assert len(set(METHOD_COLOURS.values())) == len(METHOD_COLOURS)
+    assert method_colour("newmethod") == method_colour("newmethod:x=1")
+    rows = [
+        {"method": m, "name": m.partition(":")[0], "scene": sc, "ms_per_frame": ms,
+         "psnr_all": db}
+        for sc in ("disk", "a scene with a long name")
+        for m, ms, db in (("tfp", 1.0, 25.0), ("cfsr", 40.0, 31.0), ("cfsr:fast", 20.0, 30.0),
+                          ("csr", 5.0, 29.0))
+    ]
+    png = plot_pareto(rows, str(tmp_path / "p.png"))
+    bars = plot_metric_bars(rows, str(tmp_path / "b.png"), methods=["tfp", "csr", "cfsr"])
+    for path in (png, bars):
+        with Image.open(path) as im:
+            rgb = np.asarray(im.convert("RGB"))
+        # the method's own colour is in the picture: no colour map re-assigned it
+        want = np.array([int(METHOD_COLOURS["cfsr"][i:i + 2], 16) for i in (1, 3, 5)])
+        assert (np.abs(rgb.astype(int) - want).sum(axis=2) < 6).any(), path
 
 
 @pytest.mark.slow

@@ -292,6 +292,25 @@ def _acquisition(args: argparse.Namespace) -> dict[str, Any]:
     return acquisition_throughput(seconds=2.0 if args.quick else 5.0)
 
 
+def _live(args: argparse.Namespace, bar) -> dict[str, Any]:
+    """The live service's frame rate per method, CFSR tier and pool split, measured by the
+    live layer (``cfsr.benchmarks`` entry point ``live``: this package never imports it)."""
+    from importlib.metadata import entry_points
+
+    from cfsr.cli._extras import install_hint
+
+    eps = [ep for ep in entry_points(group="cfsr.benchmarks") if ep.name == "live"]
+    if not eps:
+        return {"error": "live benchmark not installed"}
+    try:
+        live_throughput = eps[0].load()
+    except ImportError as exc:
+        return {"error": f"live benchmark unavailable ({exc}): {install_hint('live')}"}
+    return live_throughput(
+        seconds=6.0 if args.quick else 20.0, progress=lambda s: bar.set_description(s)
+    )
+
+
 #: Methods whose cost is measured at 1 and 2 threads (issue 14: scaling stated, not guessed).
 SCALING_METHODS = ("tfp", "csr", "cfsr")
 
@@ -325,7 +344,7 @@ def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
     cores = usable_cores()
     splits = [(w, t) for w, t in POOL_SPLITS if w * t <= cores]
     bar.reset(
-        total=2 + len(methods()) + len(SCALING_METHODS) + len(DENSE_OUTPUTS) + len(splits)
+        total=3 + len(methods()) + len(SCALING_METHODS) + len(DENSE_OUTPUTS) + len(splits)
     )
     bar.set_description("streaming state")
     rtf = {"streaming_state": streaming_state_rtf(packed, layout)}
@@ -375,12 +394,15 @@ def _throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
         )
         pool["best"] = best
         pool["forecast"] = core_forecast(one["ms_per_frame"], widest, FORECAST_CORES)
+    live = _live(args, bar)
+    bar.update()
     return {
         "realtime_factor": rtf,
         "fps": fps,
         "scaling": scaling,
         "dense": dense,
         "pool": pool,
+        "live": live,
         "acquisition": acq,
         "methods": detail,
         "goals": GOALS,
@@ -445,6 +467,26 @@ def _print_throughput(res: dict[str, Any]) -> None:
                 f"({fc['efficiency']:.2f}): "
                 + ", ".join(f"{c} cores {v:.0f} fps" for c, v in fc["fps"].items())
             )
+    live = res.get("live", {})
+    if live.get("runs"):
+        print(f"  live service on the demo (frames/s published, max_fps {live['max_fps']:g}):")
+        for r in live["runs"]:
+            tier = f" {r['quality']}" if r.get("quality") else ""
+            head = f"    {r['method']}{tier} {r['workers']} x {r['threads']}:"
+            if "error" in r:
+                print(f"{head} {r['error']}")
+                continue
+            mix = (
+                f", {r['full_frames']} full / {r['fast_frames']} fast"
+                if r.get("quality") == "auto" else ""
+            )
+            print(
+                f"{head} {r['fps']:5.1f} fps{mix}, compute {r['compute_ms']:.0f} ms,"
+                f" latency {r['latency_ms']:.0f} ms, dropped {r['dropped_late']} late /"
+                f" {r['dropped_order']} out of order"
+            )
+    elif live.get("error"):
+        print(f"  live: {live['error']}")
     dense = res.get("dense", {})
     if dense:
         print("  dense output (one stream, outputs `stride` steps apart) against isolated frames:")
@@ -461,12 +503,11 @@ def _print_throughput(res: dict[str, Any]) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from cfsr.bench import format_rows, plot_pareto
-    from cfsr.cli._extras import require_extra
+    from cfsr.bench import format_rows
+    from cfsr.cli._extras import install_hint, require_extra
+    from cfsr.plots import have_matplotlib, plot_pareto
 
     # checked before the run, not after minutes of work
-    if not (args.throughput or args.sweep or args.tiers or args.dense):
-        require_extra("bench")  # the accuracy grid ends with its Pareto plot
     if getattr(args, "cluster", None):
         require_extra("cluster")
     args.out.mkdir(parents=True, exist_ok=True)
@@ -533,11 +574,15 @@ def run(args: argparse.Namespace) -> int:
             print("CPBD rewards noise: read it beside STD and the PSNR table, never alone.")
         if res["skipped"]:
             print(f"skipped (not in this build): {', '.join(res['skipped'])}")
-        png = plot_pareto(
-            [r for r in res["rows"] if not r["scene"].startswith("reds:")],
-            str(args.out / "pareto.png"),
-        )
-        print(f"plot: {png}")
+        # the tables and the JSON are the results; the plot is extra (cfsr[bench])
+        if have_matplotlib():
+            png = plot_pareto(
+                [r for r in res["rows"] if not r["scene"].startswith("reds:")],
+                str(args.out / "pareto.png"),
+            )
+            print(f"plot: {png}")
+        else:
+            print(f"plot skipped: matplotlib is not installed ({install_hint('bench')})")
     print(
         f"JSON: {args.out / name}"
         + (f" and {args.json}" if args.json else "")
