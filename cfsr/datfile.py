@@ -654,8 +654,12 @@ def read_npz(path: str | os.PathLike, key: str | None = None) -> SpikeRecording:
                 cands = [k for k in names if z[k].ndim == 3]
                 key = "spk" if "spk" in names else (cands[0] if len(cands) == 1 else None)
             if key is None or key not in names:
+                # named for both callers: the function's argument and the CLI's option
+                what = "cannot tell which array holds spikes" if key is None else (
+                    f"no array {key!r}")
                 raise SpikeFileError(
-                    f"{p}: cannot tell which array holds spikes; arrays: {names} (pass key=)"
+                    f"{p}: {what}; arrays: {names} (choose one: key= in Python, --key on "
+                    "the command line)"
                 )
             arr = z[key]
     except (OSError, ValueError) as exc:

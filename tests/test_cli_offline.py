@@ -194,3 +194,20 @@ def test_first_frame_notice_says_numba_is_compiling():
     quiet = Bar(0)
     with first_frame_notice(quiet, "cfsr", after=0.01, enabled=False):
         assert not quiet.wrote.wait(0.2)
+
+
+def test_npz_array_chosen_with_key(dat, tmp_path, capsys):
+    """An .npz with several 3-D arrays: the error names them and the option that picks one,
+    --key picks it, and --key on a .dat is refused in one line."""
+    f, s = dat
+    two = tmp_path / "two.npz"
+    np.savez(two, a=s, b=s[:300])
+    assert main(["info", str(two)]) == 2
+    err = capsys.readouterr().err
+    assert "['a', 'b']" in err and "--key" in err and len(err.strip().splitlines()) == 1
+    assert main(["info", str(two), "--key", "b"]) == 0
+    assert "300 steps" in capsys.readouterr().out
+    assert main(["info", str(two), "--key", "c"]) == 2
+    assert "no array 'c'" in capsys.readouterr().err
+    assert main(["info", str(f), "--key", "a"]) == 2
+    assert "only an .npz" in capsys.readouterr().err

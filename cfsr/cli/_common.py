@@ -90,13 +90,21 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="drop an incomplete trailing frame instead of failing (reported)",
     )
+    g.add_argument(
+        "--key",
+        metavar="NAME",
+        help=".npz only: the array that holds the spikes (default: spk, or the only 3-D array)",
+    )
 
 
 def open_input(args: argparse.Namespace):
     from cfsr.datfile import read_spikes
 
+    key = getattr(args, "key", None)
     if str(args.input).lower().endswith(".npz"):
-        return read_spikes(args.input)
+        return read_spikes(args.input, key=key)
+    if key is not None:
+        raise ValueError(f"--key {key}: only an .npz input has named arrays")
     return read_spikes(
         args.input,
         width=args.width,
