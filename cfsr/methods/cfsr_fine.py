@@ -1030,7 +1030,8 @@ def fine_stage(
         # the static estimate, the car lost 1.1 dB (docs/methods.md, "Two-sided objects")
         region = region | ghosts
     if adaptive and not region.any():
-        return slow_fuse(src, center, np.clip(tfp, 0.0, 1.0).astype(np.float32), None, p), masks
+        rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
+        return slow_fuse(src, center, rate, None, p, active), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
     # patch's reach of a fine-mask pixel)
     if adaptive:
@@ -1077,7 +1078,8 @@ def fine_stage(
         padded=padded,
     )
     if not region.any():  # always-full pipeline on a static window: the same TFP output
-        return slow_fuse(src, center, np.clip(tfp, 0.0, 1.0).astype(np.float32), None, p), masks
+        rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
+        return slow_fuse(src, center, rate, None, p, active), masks
     tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     crop = dyn[y0:y1, x0:x1]
@@ -1085,7 +1087,7 @@ def fine_stage(
     # 6. ATSR (Eq. 7)
     rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
     # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
-    return slow_fuse(src, center, rate, used, p), masks
+    return slow_fuse(src, center, rate, used, p, active), masks
 
 
 class _Carry(NamedTuple):
