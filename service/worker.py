@@ -208,6 +208,7 @@ class _Worker:
         self._last_shown: int | None = None
         self._first_since: float | None = None  # first task under this config submitted at
         self._first_pending = True
+        self._ready: dict[int, tuple[_Task, Any, float]] = {}  # results waiting for older ones
         self._fallback_next = 0.0
         self._ema: dict[str, float] = {}
         self._credit = 0.0
@@ -372,26 +373,45 @@ class _Worker:
         return True
 
     def _collect(self) -> bool:
-        """Publish the results that are in, in step order; True when one was shown."""
+        """Publish the results that are in, in step order; True when one was shown.
+
+        A result whose older sibling (same config, earlier step) is still computing waits
+        for it in ``_ready`` (frames side by side finish in any order; showing the newer one
+        at once would throw the older one away), and goes out right after it.
+        """
         from cfsr.pool import TaskError
 
-        shown = False
         while self._tasks:
             try:
                 r = self.pool.collect(timeout=0)
             except TaskError as exc:  # this frame failed; the process takes the next one
                 self._tasks.pop(exc.tag, None)
+                self._flush()
                 raise
             if r is None:
                 break
             task = self._tasks.pop(r.tag)
             (t, out), ms = r.outputs[0], r.compute_ms[0]
-            self._ema[task.quality] = (
-                ms if task.quality not in self._ema else 0.8 * self._ema[task.quality] + 0.2 * ms
-            ) if ms > 0 else self._ema.get(task.quality, 0.0)
+            if ms > 0:
+                old = self._ema.get(task.quality)
+                self._ema[task.quality] = ms if old is None else 0.8 * old + 0.2 * ms
             if task.version != self.config.version:
                 self.bump("dropped_late")  # computed under a config since replaced
                 continue
+            self._ready[t] = (task, out, ms)
+        shown = self._flush()
+        self._check_hangs()
+        return shown
+
+    def _flush(self) -> bool:
+        """Show the waiting results that no older task of their config precedes."""
+        shown = False
+        while self._ready:
+            t = min(self._ready)
+            v = self.config.version
+            if any(k.version == v and k.step < t for k in self._tasks.values()):
+                break
+            task, out, ms = self._ready.pop(t)
             first, self._first_pending = self._first_pending, False
             if first:  # shown however long it took: nothing newer of this config exists
                 self.slow_first = 0.0
@@ -409,7 +429,6 @@ class _Worker:
             self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms)
             self.bump("q_" + task.quality)
             shown = True
-        self._check_hangs()
         return shown
 
     def _check_hangs(self) -> None:
