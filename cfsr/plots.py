@@ -160,8 +160,8 @@ def plot_metric_bars(
     names = list(methods) if methods else sorted({r["method"] for r in ok})
     value = {(r["scene"], r["method"]): r[metric] for r in ok}
     width = 0.8 / max(1, len(names))
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(scenes) * max(1, len(names)) * 0.35 + 2),
-                                    3.8))
+    bars = len(scenes) * max(1, len(names))
+    fig, ax = plt.subplots(figsize=(min(12.0, max(6.0, 0.2 * bars + 2.0)), 4.0))
     for i, name in enumerate(names):
         xs = [k + (i - (len(names) - 1) / 2) * width for k, s in enumerate(scenes)
               if (s, name) in value]

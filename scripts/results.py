@@ -1,0 +1,272 @@
+"""docs/results.md and its plots, generated from the JSON files `cfsr bench` writes (never typed
+by hand: rerun the benchmark, then this script).
+
+    ./tasks bench --out docs/bench                  # accuracy.json (and pareto.png)
+    ./tasks bench --throughput --out docs/bench     # throughput.json
+    ./tasks bench --sweep --out docs/bench          # sweep.json
+    python scripts/results.py                       # docs/results.md, docs/bench/*.png
+    python scripts/results.py --check               # exit 1 if docs/results.md is stale
+
+A JSON file that is absent leaves its section out; keys a file lacks leave their rows out.
+The plots need matplotlib (`cfsr[bench]`); without it the page is still written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "docs" / "bench"
+PAGE = ROOT / "docs" / "results.md"
+#: the order of the tables: the paper's methods, then the baselines, then anything else
+ORDER = ("tfi", "tfp", "tfa", "tfstp", "snm", "csr", "cfsr")
+
+
+def _ok(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _f(v: Any, fmt: str) -> str:
+    return format(v, fmt) if _ok(v) else "-"
+
+
+def _rank(name: str) -> tuple[int, str]:
+    return (ORDER.index(name) if name in ORDER else len(ORDER), name)
+
+
+def _order(names: Sequence[str]) -> list[str]:
+    return sorted(set(names), key=_rank)
+
+
+def _load(name: str, folder: Path) -> dict[str, Any] | None:
+    p = folder / name
+    return json.loads(p.read_text()) if p.exists() else None
+
+
+def _machine(res: dict[str, Any]) -> str:
+    m = res.get("machine") or {}
+    parts = [f"{m['cores']} cores" if m.get("cores") else "", m.get("cpu", ""),
+             f"Python {m['python']}" if m.get("python") else ""]
+    return ", ".join(p for p in parts if p)
+
+
+def _best_per_method(rows: list[dict[str, Any]], scene: str) -> dict[str, dict[str, Any]]:
+    """Per method name, its variant with the highest whole-frame PSNR on ``scene``."""
+    best: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        if r["scene"] != scene or not _ok(r.get("psnr_all")):
+            continue
+        if r["name"] not in best or r["psnr_all"] > best[r["name"]]["psnr_all"]:
+            best[r["name"]] = r
+    return best
+
+
+def accuracy_section(acc: dict[str, Any]) -> list[str]:
+    rows = acc["rows"]
+    sim = sorted({r["scene"] for r in rows if not r["scene"].startswith("reds:")})
+    reds = "reds:mean" if any(r["scene"] == "reds:mean" for r in rows) else None
+    names = _order([r["name"] for r in rows])
+    best = {s: _best_per_method(rows, s) for s in [*sim, *([reds] if reds else [])]}
+    out = [
+        "## Accuracy",
+        "",
+        f"`cfsr bench`: simulator scenes at 400 x 250, {acc.get('steps', '?')} steps, outputs at "
+        f"steps {', '.join(str(t) for t in acc.get('times', []))}; PSNR in dB of the 8-bit display "
+        "(rate / rate_scale * 255) against the exact ground truth, whole frame / inside the true "
+        "motion mask. A method tried with several settings shows its best one (the setting in "
+        "brackets). The best value of each column is in bold."
+        + (" REDS: the mean over the REDS samples (ground truth frame 150, display rate / 0.6 "
+           "* 255)." if reds else ""),
+        "",
+    ]
+    cols = [*sim, *([reds] if reds else [])]
+    head = ["method", *[("REDS" if c == reds else c) for c in cols], "ms/frame"]
+    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    top = {c: max((r["psnr_all"] for r in best[c].values()), default=None) for c in cols}
+    for n in names:
+        cells = [n]
+        for c in cols:
+            r = best[c].get(n)
+            if r is None:
+                cells.append("-")
+                continue
+            v = _f(r["psnr_all"], ".2f")
+            if c != reds:
+                v += " / " + _f(r.get("psnr_motion"), ".2f")
+            if top[c] is not None and r["psnr_all"] == top[c]:
+                v = f"**{v}**"
+            label = r["method"].partition(":")[2]
+            if label and len({x["method"] for x in rows if x["name"] == n}) > 1:
+                v += f" ({label})"
+            cells.append(v)
+        ms = [r["ms_per_frame"] for r in rows if r["name"] == n and _ok(r.get("ms_per_frame"))
+              and not r["scene"].startswith("reds:")]
+        cells.append(_f(sorted(ms)[len(ms) // 2], ".1f") if ms else "-")
+        out.append("| " + " | ".join(cells) + " |")
+    out += ["", "ms/frame: the median over the simulator rows of each method (all settings).", ""]
+    iou_keys = sorted({k for r in rows for k in r if k.startswith("iou_")})
+    if iou_keys:
+        out += ["Mask IoU with the true motion mask, per mask a method makes:", "",
+                "| method | mask | " + " | ".join(sim) + " |", "|" + "---|" * (len(sim) + 2)]
+        for n in names:
+            for k in iou_keys:
+                cells = [_f(best[s][n].get(k), ".2f") if n in best[s] else "-" for s in sim]
+                if any(c != "-" for c in cells):
+                    out.append(f"| {n} | {k[4:]} | " + " | ".join(cells) + " |")
+        out.append("")
+    if acc.get("noref"):
+        out += [
+            "Real capture without ground truth (`uhsr`): STD and CPBD of the 8-bit frame. CPBD "
+            "rewards noise: read it beside STD and the PSNR table, never alone.",
+            "",
+            "| method | STD | CPBD | ms/frame |",
+            "|---|---|---|---|",
+        ]
+        for r in acc["noref"]:
+            out.append(f"| {r['method']} | {_f(r.get('std'), '.1f')} | {_f(r.get('cpbd'), '.3f')}"
+                       f" | {_f(r.get('ms_per_frame'), '.1f')} |")
+        out.append("")
+    out += ["![PSNR per scene](bench/psnr.png)", "",
+            "![run time against error](bench/pareto.png)", ""]
+    return out
+
+
+def throughput_section(tp: dict[str, Any]) -> list[str]:
+    goals = tp.get("goals", {})
+    out = ["## Throughput", "", "`cfsr bench --throughput` on the demo scene (400 x 250); ratios "
+           "are to the sensor's real time (40,000 frames/s).", "",
+           "| measure | result | goal |", "|---|---|---|"]
+    rtf = tp.get("realtime_factor", {})
+    acq = tp.get("acquisition") or {}
+    if _ok(rtf.get("acquisition")):
+        lost = acq.get("lost_frames")
+        span = ""
+        if _ok(acq.get("realtime_factor_min")) and _ok(acq.get("realtime_factor_max")):
+            span = f" (runs {acq['realtime_factor_min']:.2f}-{acq['realtime_factor_max']:.2f}x)"
+        src = (acq.get("end_to_end") or {}).get("source") or acq.get("source", "")
+        out.append(f"| acquisition -> ring: {src} | {rtf['acquisition']:.2f}x real "
+                   f"time{span}, {lost if lost is not None else '?'} frames lost | "
+                   f"{goals.get('acquisition', '')} |")
+    drv = acq.get("driver") or {}
+    if _ok(drv.get("realtime_factor")):
+        out.append(f"| acquisition, the driver alone | {drv['realtime_factor']:.1f}x real time | |")
+    if _ok(rtf.get("streaming_state")):
+        out.append(f"| streaming per-pixel state on packed bytes | {rtf['streaming_state']:.2f}x "
+                   f"real time | {goals.get('streaming_state', '')} |")
+    for name, m in sorted((tp.get("methods") or {}).items(), key=lambda kv: _rank(kv[0])):
+        if _ok(m.get("fps")):
+            out.append(f"| {name} display frames | {m['fps']:.1f} fps "
+                       f"({_f(m.get('ms_per_frame'), '.1f')} ms) | {goals.get(name, '')} |")
+    out.append("")
+    sc = tp.get("scaling") or {}
+    if sc:
+        out += ["Threads (numba and OpenCV pools at 1 and 2 threads; the parallel fraction p by "
+                "Amdahl's law and what it predicts, not a measurement on more cores):", "",
+                "| method | ms at 1 thread | ms at 2 | p | predicted x at 8 | at 16 |",
+                "|---|---|---|---|---|---|"]
+        for name in _order(list(sc)):
+            s = sc[name]
+            ms = s.get("ms_per_frame", {})
+            pr = s.get("predicted_speedup", {})
+            out.append(f"| {name} | {_f(ms.get('1'), '.2f')} | {_f(ms.get('2'), '.2f')} | "
+                       f"{_f(s.get('parallel_fraction'), '.2f')} | {_f(pr.get('8'), '.1f')} | "
+                       f"{_f(pr.get('16'), '.1f')} |")
+        out.append("")
+    return out
+
+
+def sweep_section(sw: dict[str, Any]) -> list[str]:
+    rows = sw.get("rows", [])
+    scen = []
+    for r in rows:
+        if r["scenario"] not in scen:
+            scen.append(r["scenario"])
+    out = ["## Cost follows the scene", "",
+           "`cfsr bench --sweep`: CFSR with `adaptive` on (skip what the scene does not need) "
+           "and off, as the moving part of the scene grows; TFP for scale.", "",
+           "| scene | moving | TFP ms | CFSR adaptive ms | always-full ms | speed-up | PSNR "
+           "adaptive - full (dB) |", "|---|---|---|---|---|---|---|"]
+    for s in scen:
+        sub = [r for r in rows if r["scenario"] == s]
+        tfp = next((r for r in sub if r["method"] == "tfp"), None)
+        ad = next((r for r in sub if r["method"] == "cfsr" and r.get("adaptive")
+                   and r.get("static_gate") is not False), None)
+        full = next((r for r in sub if r["method"] == "cfsr" and r.get("adaptive") is False),
+                    None)
+        sp = (full["ms_per_frame"] / ad["ms_per_frame"]) if ad and full else None
+        dp = (ad["psnr_all"] - full["psnr_all"]) if ad and full else None
+        frac = sub[0].get("motion_fraction")
+        ms = [_f(r and r["ms_per_frame"], ".1f") for r in (tfp, ad, full)]
+        out.append(f"| {s} | {_f(100 * frac if _ok(frac) else None, '.0f')} % | "
+                   + " | ".join(ms) + f" | {_f(sp, '.1f')}x | {_f(dp, '+.3f')} |")
+    out.append("")
+    return out
+
+
+def render(folder: Path = BENCH) -> str:
+    acc, tp, sw = (_load(n, folder) for n in ("accuracy.json", "throughput.json", "sweep.json"))
+    out = ["# Results", "",
+           "<!-- generated by scripts/results.py from docs/bench/*.json: do not edit by hand -->",
+           "",
+           "What `cfsr bench` measured. Timings are from one run on the machine named under "
+           "each section (a shared machine: identical runs vary by tens of percent); the "
+           "accuracy figures do not depend on the machine. How each method works: "
+           "[methods.md](methods.md); how the figures came to be what they are: "
+           "[history.md](history.md).", ""]
+    if acc:
+        out += accuracy_section(acc)
+        out += [f"Machine: {_machine(acc)}.", ""]
+    if tp:
+        out += throughput_section(tp)
+        out += [f"Machine: {_machine(tp)}.", ""]
+    if sw:
+        out += sweep_section(sw)
+        out += [f"Machine: {_machine(sw)}.", ""]
+    return "\n".join(out).rstrip() + "\n"
+
+
+def plots(folder: Path = BENCH) -> list[str]:
+    from cfsr.plots import have_matplotlib, plot_metric_bars, plot_pareto
+
+    acc = _load("accuracy.json", folder)
+    if not acc or not have_matplotlib():
+        return []
+    rows = acc["rows"]
+    sim = [r for r in rows if not r["scene"].startswith("reds:")]
+    best = [r for s in sorted({r["scene"] for r in sim})
+            for r in _best_per_method(sim, s).values()]
+    bars = [{**r, "method": r["name"]} for r in best]
+    return [
+        plot_metric_bars(bars, str(folder / "psnr.png"), metric="psnr_all",
+                         methods=_order([r["name"] for r in best]),
+                         title="PSNR per scene (each method's best setting)"),
+        plot_pareto(sim, str(folder / "pareto.png")),
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--check", action="store_true",
+                    help="only compare docs/results.md with what the JSON gives; 1 if stale")
+    ap.add_argument("--no-plots", action="store_true", help="write the page only")
+    args = ap.parse_args(argv)
+    text = render()
+    if args.check:
+        if PAGE.read_text() != text:
+            print(f"{PAGE} is stale: run python scripts/results.py", file=sys.stderr)
+            return 1
+        return 0
+    PAGE.write_text(text)
+    made = [] if args.no_plots else plots()
+    print("\n".join([str(PAGE), *made]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
