@@ -479,7 +479,9 @@
     const el = $("record-name"), v = el.value.trim();
     el.setCustomValidity(!v || !recordNameRe || recordNameRe.test(v) ? ""
       : "not a recording name: it must match " + recordNameRe.source);
-    return el.checkValidity();
+    const ok = el.checkValidity();
+    if (ok && $("record-msg").classList.contains("error")) msg($("record-msg"), "");
+    return ok;
   }
   $("record-name").addEventListener("input", checkRecordName);
 
@@ -761,13 +763,16 @@
     const progress = k && k.state === "compiling"
       ? (k.ready.length + "/" + (k.ready.length + k.pending.length) + " methods compiled, " + Math.round(k.elapsed_s || 0) + " s")
       : (w.first_frame_s > 3 ? Math.round(w.first_frame_s) + " s" : "");
-    if (w.fallback_method) {
+    // the status may lag the frames by a poll: once frames of the chosen method arrive,
+    // nothing is shown in its place any more
+    const arrived = latest && latest.method === s.method;
+    if (w.fallback_method && !arrived) {
       const target = w.compiling || s.method;
       return "showing " + w.fallback_method.toUpperCase() + " while " + target.toUpperCase() + " compiles"
         + (progress ? " (" + progress + ")" : "");
     }
-    if (w.compiling) return "compiling " + w.compiling.toUpperCase() + (progress ? " (" + progress + ")" : "");
-    if (w.first_frame_s > 3) return "first " + s.method + " frame for " + Math.round(w.first_frame_s)
+    if (w.compiling && !arrived) return "compiling " + w.compiling.toUpperCase() + (progress ? " (" + progress + ")" : "");
+    if (w.first_frame_s > 3 && !arrived) return "first " + s.method + " frame for " + Math.round(w.first_frame_s)
       + " s: the reconstruction kernels compile on first use on this machine (once, then cached)";
     if (k && k.state === "compiling") return "compiling kernels in the background (" + progress + (k.pending.length ? ", now " + k.pending[0] : "") + ")";
     if (k && k.state === "failed") return "kernel warm-up failed: " + k.error;
@@ -782,7 +787,9 @@
       $("fig-rtf").textContent = fmt(s.real_time_factor, 3);
       $("fig-worker-rate").textContent = big(w.steps_per_s);
       $("fig-fps").textContent = fmt(s.output_fps, 1);
-      $("fig-latency").textContent = fmt(s.latency_ms, 1);
+      // a paused replay's frames reuse old spikes: their age is no latency
+      const paused = s.source.replay && !s.source.replay.playing;
+      $("fig-latency").textContent = paused ? "paused" : fmt(s.latency_ms, 1);
       $("fig-compute").textContent = fmt(s.compute_ms, 1);
       $("fig-worker").textContent = workerText(w);
       const hasQ = w.quality && w.quality.mode;
