@@ -144,8 +144,11 @@ def _pool_main(
 
     from cfsr._heap import keep_freed_memory
 
-    # Ctrl+C reaches the whole process group: the pool's owner stops us, not the signal
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Ctrl+C, a closed terminal and Ctrl+\ reach the whole process group: the pool's owner
+    # stops us (and releases what we share) rather than the signal killing us half-way
+    for sig in ("SIGINT", "SIGHUP", "SIGQUIT"):
+        if hasattr(signal, sig):
+            signal.signal(getattr(signal, sig), signal.SIG_IGN)
     keep_freed_memory()
     _limit_threads(threads)
     fd = os.open(path, os.O_RDWR)
@@ -202,13 +205,22 @@ class FramePool:
         Bytes of packed frames one task may carry (the window of its outputs). The region is
         a sparse file: only the bytes a task writes take memory. A larger task restarts the
         pool with a region that fits it.
+    wait : bool
+        Return once every process has started (True), or at once (False: tasks submitted
+        meanwhile wait in their process's queue; a process that fails to start is reported by
+        :meth:`collect`, as a dead one is).
 
     Use it as a context manager, or call :meth:`close`. Not thread-safe: one owner submits
     and collects.
     """
 
     def __init__(
-        self, workers: int | None = None, threads: int = 1, *, region_bytes: int = 64 << 20
+        self,
+        workers: int | None = None,
+        threads: int = 1,
+        *,
+        region_bytes: int = 64 << 20,
+        wait: bool = True,
     ) -> None:
         self.threads = max(1, int(threads))
         self.workers = default_workers(self.threads) if workers is None else int(workers)
@@ -223,13 +235,15 @@ class FramePool:
         self._busy: dict[int, Any] = {}  # worker -> tag of the task it runs
         self._result_q: Any = None
         self._lock = threading.Lock()
+        self._wait = bool(wait)
         self._start()
 
     # -- lifecycle ---------------------------------------------------------------------------
     def _start(self) -> None:
         folder = _shm_folder()
         self._result_q = self._ctx.Queue()
-        paths = []
+        paths: list[str] = []
+        self._paths = paths  # unlinked by close() too, should a start fail half-way
         try:
             for k in range(self.workers):
                 fd, path = tempfile.mkstemp(prefix=f"cfsr-pool-{os.getpid()}-{k}-", dir=folder)
@@ -253,9 +267,9 @@ class FramePool:
                 p.start()
                 self._procs.append(p)
             self.pids = [0] * self.workers
-            waiting = set(range(self.workers))
+            self._unready = set(range(self.workers))
             end = time.monotonic() + 120.0
-            while waiting:
+            while self._wait and self._unready:
                 try:
                     kind, k, pid = self._result_q.get(timeout=0.2)
                 except queue.Empty:
@@ -263,18 +277,30 @@ class FramePool:
                     if time.monotonic() > end:
                         raise PoolError("pool processes did not start within 120 s") from None
                     continue
-                if kind == "ready":
-                    self.pids[k] = pid
-                    waiting.discard(k)
+                self._ready_msg(kind, k, pid)
         except BaseException:
             self.close()
             raise
         finally:
-            for path in paths:  # mapped by both sides now (or failed): nothing to leave behind
-                try:
-                    os.unlink(path)
-                except OSError:
-                    pass
+            if self._wait or not getattr(self, "_unready", None):
+                self._unlink_regions()
+
+    def _ready_msg(self, kind: str, k: int, pid: Any) -> None:
+        if kind == "ready":
+            self.pids[k] = pid
+            self._unready.discard(k)
+            if not self._unready:
+                self._unlink_regions()  # mapped by every process now
+
+    def _unlink_regions(self) -> None:
+        """Remove the regions' names: every process has mapped them (or failed), so nothing
+        is left behind however the processes end."""
+        for path in getattr(self, "_paths", []):
+            try:
+                os.unlink(path)
+            except OSError:
+                pass
+        self._paths = []
 
     def close(self) -> None:
         """Stop the processes and release the regions (idempotent)."""
@@ -292,6 +318,7 @@ class FramePool:
             if q is not None:
                 q.cancel_join_thread()
                 q.close()
+        self._unlink_regions()
         self._regions.clear()
         for mm in self._maps:
             try:
@@ -383,6 +410,9 @@ class FramePool:
                 self._check_alive()
                 if end is not None and time.monotonic() >= end:
                     return None
+                continue
+            if kind == "ready":
+                self._ready_msg(kind, k, payload)
                 continue
             if kind == "done":
                 self._busy.pop(k, None)

@@ -194,7 +194,9 @@ class _Worker:
         self._next_out = 0.0
         self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
         self.slow_first = 0.0  # test hook (Inject "slow_first")
-        self.pool = FramePool(workers, threads)
+        # not waiting for the processes to start: the heartbeat and the first frames of the
+        # loop do not wait on their imports
+        self.pool = FramePool(workers, threads, wait=False)
         self.put("workers", self.pool.workers)
         self.put("threads", self.pool.threads)
         self._tasks: dict[int, _Task] = {}
@@ -580,8 +582,11 @@ def worker_main(
 
     from cfsr._heap import keep_freed_memory
 
-    # Ctrl+C reaches the whole process group: the supervisor stops us, not the signal.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Ctrl+C, a closed terminal and Ctrl+\ reach the whole process group: the supervisor
+    # stops us (and our pool, releasing its semaphores and regions), not the signal.
+    for sig in ("SIGINT", "SIGHUP", "SIGQUIT"):
+        if hasattr(signal, sig):
+            signal.signal(getattr(signal, sig), signal.SIG_IGN)
     keep_freed_memory()  # frames reuse the last frame's large arrays (no page faults)
     from cfsr.pool import PoolError, TaskError
 
