@@ -96,8 +96,12 @@ def test_fuse_rules():
         "slow_fine_min": 32,
         "slow_fine_intervals": 12,
         "slow_fine_weight": 0.5,
+        "slow_fine_full": 0,
+        "slow_noise": 0.0,
     }
     assert slow_fuse(src, 300, rate, None, {**p, "slow_reach": 0}) is rate
+    # temporal noise breaks the exact bounds: the stage stands aside
+    assert slow_fuse(src, 300, rate, None, p, noise=0.2) is rate
     slow, half, count = slow_rates(src, 300, np.ones((H, W), bool), reach=128)
     out = slow_fuse(src, 300, rate, None, p)
     took = (half >= 8) & (count - 1 >= 4)
@@ -111,6 +115,11 @@ def test_fuse_rules():
     np.testing.assert_allclose(out[inner], 0.5 * (slow[inner] + 0.123), rtol=1e-6)
     np.testing.assert_array_equal(out[fine & ~inner], rate[fine & ~inner])
     np.testing.assert_array_equal(out[~fine & took], slow[~fine & took])
+    # from slow_fine_full on, the window's rate replaces PatchMatch's
+    out = slow_fuse(src, 300, rate, fine, {**p, "slow_fine_full": 64})
+    full = inner & (half >= 64)
+    assert full.any()
+    np.testing.assert_array_equal(out[full], slow[full])
 
 
 def _psnr(sim, rate, t, mask=None):
@@ -119,6 +128,13 @@ def _psnr(sim, rate, t, mask=None):
 
     gt = to_display(sim.ideal_rate(t), gain=sim.rate_scale)
     return psnr(gt, to_display(rate, gain=sim.rate_scale), mask=mask)
+
+
+def test_cfsr_under_shot_noise_is_left_alone():
+    sim = simulate("disk", 900, seed=0, height=96, width=128, noise="shot")
+    on = cfsr.reconstruct(sim.spikes, "cfsr", [450])[0]
+    off = cfsr.reconstruct(sim.spikes, "cfsr", [450], slow_reach=0)[0]
+    np.testing.assert_array_equal(on, off)
 
 
 @pytest.mark.parametrize("scene", ["vibrate", "drift"])

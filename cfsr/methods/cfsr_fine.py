@@ -947,6 +947,7 @@ def fine_stage(
     _carry_out(memo, int(seed), center, p, dict(zip(hs["ends"].tolist(), rates, strict=True)))
     tfi_at_t = hs["tfi"]
     sharp = None  # Eq. 9's f under mog_sides = both (_Sharp)
+    noise = None  # the frame's temporal-noise level (steady rules; the slow-motion stage's gate)
     if uses_steady(p) or two_sided(p):  # the intervals around t: steady coarse mask, static
         # check, sharp rate; from the history scan's words, before anything else reuses its
         # scratch store
@@ -954,6 +955,7 @@ def fine_stage(
         if two_sided(p):  # CFSR has no dynamic estimator of its own: the span rule at t
             q = {**p, "dynamic_estimator": "steady", "dynamic_span": int(p["mog_span"])}
         st = steady_parts(src, center, q, words=hs["words"], static=False, active=active)
+        noise = st.noise
         coarse = coarse if st.mask is None else st.mask
         tfp = static_checked(tfp, st.isi, st.noise, p)
         tfi_t = (1.0 / st.isi).astype(np.float32)  # the same numbers as _tfi_at
@@ -1031,7 +1033,7 @@ def fine_stage(
         region = region | ghosts
     if adaptive and not region.any():
         rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
-        return slow_fuse(src, center, rate, None, p, active), masks
+        return slow_fuse(src, center, rate, None, p, active, noise), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
     # patch's reach of a fine-mask pixel)
     if adaptive:
@@ -1079,7 +1081,7 @@ def fine_stage(
     )
     if not region.any():  # always-full pipeline on a static window: the same TFP output
         rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
-        return slow_fuse(src, center, rate, None, p, active), masks
+        return slow_fuse(src, center, rate, None, p, active, noise), masks
     tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     crop = dyn[y0:y1, x0:x1]
@@ -1087,7 +1089,7 @@ def fine_stage(
     # 6. ATSR (Eq. 7)
     rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
     # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
-    return slow_fuse(src, center, rate, used, p, active), masks
+    return slow_fuse(src, center, rate, used, p, active, noise), masks
 
 
 class _Carry(NamedTuple):

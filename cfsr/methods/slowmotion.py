@@ -119,6 +119,24 @@ SLOW_PARAMS: dict[str, Param] = {
         minimum=0.0,
         maximum=1.0,
     ),
+    # under temporal noise the bounds fail on still pixels: their windows end early and a
+    # short window's rate replaced a 160-step static estimate (shot noise: disk -2.6 dB)
+    "slow_noise": Param(
+        0.0,
+        "",
+        "slow motion: frame temporal-noise level (median relative interval spread) above "
+        "which the stage is off",
+        minimum=0.0,
+        maximum=10.0,
+    ),
+    "slow_fine_full": Param(
+        128,
+        "steps",
+        "slow motion: half-width from which the window's rate replaces PatchMatch's inside "
+        "the fine region (0: never)",
+        minimum=0,
+        maximum=MAX_WINDOW_STEPS // 4,
+    ),
 }
 
 
@@ -336,6 +354,7 @@ def slow_fuse(
     fine: np.ndarray | None,
     p: Mapping[str, Any],
     active: np.ndarray | None = None,
+    noise: float | None = None,
 ) -> np.ndarray:
     """CFSR's output ``rate`` with the slow-motion windows where the motion allows them.
 
@@ -346,11 +365,15 @@ def slow_fuse(
     (``slow_fine_weight``). Elsewhere (fast motion, too few spikes) ``rate`` is kept.
     ``slow_reach = 0`` returns ``rate`` itself. Only the pixels of ``active`` (bool (H, W);
     None: all) are looked at: the tiles CFSR's static gate passes are still, and their rate
-    is already a long window's (the cost follows the moving area). Rates in spikes per step,
-    float32 (H, W).
+    is already a long window's (the cost follows the moving area). ``noise`` is the frame's
+    temporal-noise level (:func:`cfsr.methods.steady.noise_level`, the median relative
+    interval spread; None: unknown): above ``slow_noise`` the exact integrate-and-fire bounds
+    do not hold, noise ends still pixels' windows early and their short windows are worse
+    than the static estimate, so ``rate`` is returned. Rates in spikes per step, float32
+    (H, W).
     """
     reach = slow_reach(p)
-    if reach <= 0:
+    if reach <= 0 or (noise is not None and noise > float(p["slow_noise"])):
         return rate
     h, w = rate.shape
     cand = np.ones((h, w), bool) if active is None else active
@@ -359,7 +382,11 @@ def slow_fuse(
     take = (half >= int(p["slow_min"])) & (whole >= int(p["slow_intervals"]))
     out = np.where(take, slow, rate)
     if fine is not None and fine.any():
-        wgt = np.float32(p["slow_fine_weight"])
+        wgt = np.where(
+            (half >= int(p["slow_fine_full"])) & (int(p["slow_fine_full"]) > 0),
+            np.float32(1.0),
+            np.float32(p["slow_fine_weight"]),
+        )
         inner = fine & (half >= int(p["slow_fine_min"])) & (whole >= int(p["slow_fine_intervals"]))
         out = np.where(fine, np.where(inner, wgt * slow + (1 - wgt) * rate, rate), out)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
