@@ -43,13 +43,13 @@ def rec():
     return pattern_recording(N, height=H, width=W, speed_px=0.004)
 
 
-@pytest.fixture
-def pipeline(rec):
+def _pipeline(rec, workers: int = 1):
+    """Replay (fast, looping) -> blocking ring -> supervised worker of ``workers`` processes."""
     dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=64)
     dev.open()
     ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
     slot = FrameSlot.create(max_pixels=H * W)
-    sup = WorkerSupervisor(slot, _cfg())
+    sup = WorkerSupervisor(slot, _cfg(), workers=workers)
     sup.start(str(ring.path), rec.layout)
     assert sup.ready.wait(120), "worker did not start"
     acq = Acquisition(dev, ring)
@@ -59,6 +59,11 @@ def pipeline(rec):
     sup.stop()
     ring.close()
     slot.close()
+
+
+@pytest.fixture
+def pipeline(rec):
+    yield from _pipeline(rec)
 
 
 def _frames(slot, n, timeout=120.0, method=None):
@@ -239,20 +244,7 @@ def test_a_slow_first_frame_is_reported_and_not_taken_for_a_hang(rec):
 @pytest.fixture
 def pool_pipeline(rec):
     """The deterministic pipeline with a pool of two reconstruction processes."""
-    dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=64)
-    dev.open()
-    ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
-    slot = FrameSlot.create(max_pixels=H * W)
-    sup = WorkerSupervisor(slot, _cfg(), workers=2)
-    sup.start(str(ring.path), rec.layout)
-    assert sup.ready.wait(120), "worker did not start"
-    acq = Acquisition(dev, ring)
-    acq.start()
-    yield dev, ring, slot, sup, acq
-    acq.stop()
-    sup.stop()
-    ring.close()
-    slot.close()
+    yield from _pipeline(rec, workers=2)
 
 
 def test_two_workers_publish_the_offline_frames_in_step_order(rec, pool_pipeline):

@@ -69,6 +69,35 @@ def parse_params(items: list[str] | None) -> dict[str, Any]:
     return params
 
 
+def count_type(lo: int, hi: int, what: str, *, auto: bool = False):
+    """An argparse type for a whole number of ``what`` in [lo, hi] (``auto``: the word
+    'auto' is also taken, as None)."""
+    alt = " or 'auto'" if auto else ""
+
+    def parse(text: str) -> int | None:
+        if auto and text.strip().lower() == "auto":
+            return None
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: give a whole number{alt}") from None
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"{v} {what}: give {lo}..{hi}{alt}")
+        return v
+
+    return parse
+
+
+def add_pool_arguments(p: argparse.ArgumentParser, workers_help: str) -> None:
+    """``--workers`` (default None: the command's choice, see ``workers_help``) and
+    ``--threads``: the reconstruction pool (:class:`cfsr.pool.FramePool`) of a command."""
+    p.add_argument("--workers", type=count_type(1, 256, "workers", auto=True), default=None,
+                   help=workers_help)
+    p.add_argument("--threads", type=count_type(1, 256, "threads"), default=1,
+                   help="numba/OpenCV threads in each reconstruction process (default 1: on a "
+                   "small machine frames side by side beat threads on one frame)")
+
+
 def add_input_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="spike recording: .dat (SpikeCV/Spike-Zoo layout) or .npz")
     g = p.add_argument_group("file layout (default: from the sidecar, else 400 x 250)")

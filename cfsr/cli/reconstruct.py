@@ -12,6 +12,7 @@ from pathlib import Path
 
 from cfsr.cli._common import (
     add_input_arguments,
+    add_pool_arguments,
     first_frame_notice,
     open_input,
     parse_params,
@@ -84,32 +85,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=40_000,
         help="output steps per chunk task (default 40000 = 1 s of recording)",
     )
-    p.add_argument(
-        "--workers",
-        type=_workers,
-        default=None,
-        help="reconstruction processes, each on its own frames (default 'auto': one per core "
-        "when the frames are costly enough to pay for starting them; same output either way)",
-    )
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="numba/OpenCV threads in each reconstruction process (default 1)",
+    add_pool_arguments(
+        p,
+        "reconstruction processes, each on its own frames (default 'auto': one per core when "
+        "the frames are costly enough to pay for starting them; same output either way)",
     )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
-
-
-def _workers(text: str) -> int | None:
-    if text.strip().lower() == "auto":
-        return None
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give a whole number or 'auto'") from None
-    if not 1 <= v <= 256:
-        raise argparse.ArgumentTypeError(f"{v} workers: give 1..256 or 'auto'")
-    return v
 
 
 def _inputs(path: Path) -> list[Path]:

@@ -48,22 +48,8 @@ def _bounded(lo: float, hi: float, what: str):
     return parse
 
 
-def _count(lo: int, hi: int, what: str):
-    """An argparse type for a whole number in [lo, hi]."""
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"{text} is outside {lo}..{hi} {what}")
-        return v
-
-    return parse
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from cfsr.cli._common import add_pool_arguments
     from replay.device import MAX_SPEED, MIN_SPEED
     from service.settings import MAX_FPS_RANGE, RING_SECONDS_RANGE
 
@@ -97,12 +83,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-loop", action="store_true", help="stop at the end of a replay")
     p.add_argument("--max-fps", type=_bounded(*MAX_FPS_RANGE, "frames/s"), default=30.0,
                    help=f"most frames/s published, {fps_lo:g}..{fps_hi:g} (default 30)")
-    p.add_argument("--workers", type=_count(1, 64, "processes"), default=None,
-                   help="reconstruction processes: frames computed at once, each on its own "
-                   "step (default: one per usable core; each adds about 150 MB)")
-    p.add_argument("--threads", type=_count(1, 64, "threads"), default=1,
-                   help="numba/OpenCV threads in each reconstruction process (default 1: on "
-                   "a small machine frames side by side beat threads on one frame)")
+    add_pool_arguments(
+        p,
+        "reconstruction processes: frames computed at once, each on its own step (default: "
+        "one per usable core; each holds its own copy of the library, see "
+        "'cfsr bench --throughput')",
+    )
     p.add_argument("--ring-seconds", type=_bounded(*RING_SECONDS_RANGE, "s"), default=0.25,
                    help=f"seconds of sensor data the shared ring holds, {ring_lo:g}..{ring_hi:g} "
                    "(default 0.25; 1 s of a 400 x 250 camera is 500 MB of shared memory)")
