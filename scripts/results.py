@@ -164,6 +164,23 @@ def throughput_section(tp: dict[str, Any]) -> list[str]:
             out.append(f"| {name} display frames | {m['fps']:.1f} fps "
                        f"({_f(m.get('ms_per_frame'), '.1f')} ms) | {goals.get(name, '')} |")
     out.append("")
+    pool = tp.get("pool") or {}
+    if pool.get("splits"):
+        out += [f"{pool.get('method', 'cfsr').upper()} on a pool of processes, each on its own "
+                "output step (processes x threads per process):", "",
+                "| processes x threads | fps | ms per frame | resident MB per process |",
+                "|---|---|---|---|"]
+        for r in pool["splits"]:
+            out.append(f"| {r.get('workers')} x {r.get('threads')} | {_f(r.get('fps'), '.1f')} | "
+                       f"{_f(r.get('ms_per_frame'), '.1f')} | "
+                       f"{_f(r.get('rss_mb_per_worker'), '.0f')} |")
+        fc = (pool.get("forecast") or {}).get("fps") or {}
+        if fc:
+            out += ["", "Forecast for bigger machines from the widest single-thread split "
+                    "(not a measurement): " + ", ".join(
+                        f"{c} cores {_f(v, '.0f')} fps" for c, v in sorted(
+                            fc.items(), key=lambda kv: int(kv[0]))) + "."]
+        out.append("")
     sc = tp.get("scaling") or {}
     if sc:
         out += ["Threads (numba and OpenCV pools at 1 and 2 threads; the parallel fraction p by "
