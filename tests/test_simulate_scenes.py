@@ -352,3 +352,33 @@ def test_vibration_helper_is_elliptic():
     dy, dx = vibration(2.0, 100.0)(np.arange(400, dtype=np.float64))
     assert np.abs(dx).max() == pytest.approx(2.0, rel=1e-3)
     assert np.abs(dy).max() == pytest.approx(1.0, rel=1e-3)
+
+
+def test_cli_scene_options(tmp_path, capsys):
+    out = tmp_path / "shake.dat"
+    assert (
+        main(
+            [
+                "simulate",
+                "vibrate",
+                "--steps",
+                "50",
+                "--height",
+                str(H),
+                "--width",
+                str(W),
+                "--option",
+                "amplitude=3",
+                "--option",
+                "hz=200",
+                "-o",
+                str(out),
+                "-q",
+            ]
+        )
+        == 0
+    )
+    scene = json.loads(out.with_name(out.name + ".json").read_text())["scene"]
+    assert scene["layers"][0]["amplitude_px"] == 3.0 and scene["layers"][0]["hz"] == 200.0
+    assert main(["simulate", "vibrate", "--option", "amplitude", "-o", str(out), "-q"]) != 0
+    assert "use KEY=VALUE" in capsys.readouterr().err

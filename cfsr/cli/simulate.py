@@ -71,7 +71,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="K",
         help="store ground truth (image, motion mask) every K frames; 0 for none (default 100)",
     )
+    p.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a scene option, repeatable: e.g. vibrate: amplitude=3 hz=200 (px, Hz); "
+        "drift: speed=0.02 angle=30 (px/step, degrees); pan: speed=0.01; disk: rpm=1000",
+    )
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def _scene_options(items: list[str]) -> dict[str, float | bool]:
+    """``KEY=VALUE`` scene options: numbers as floats, true/false as booleans."""
+    out: dict[str, float | bool] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--option {item!r}: use KEY=VALUE")
+        v = value.strip().lower()
+        if v in ("true", "false"):
+            out[key.strip()] = v == "true"
+            continue
+        try:
+            out[key.strip()] = float(v)
+        except ValueError:
+            raise ValueError(
+                f"--option {item!r}: the value must be a number or true/false"
+            ) from None
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     if args.gt_every < 0:
         raise ValueError(f"--gt-every must be >= 0, got {args.gt_every}")
     noise = Noise.parse(args.noise) if args.noise else None  # validate before any work
-    scene = make_scene(name, height=args.height, width=args.width)
+    scene = make_scene(name, height=args.height, width=args.width, **_scene_options(args.option))
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
