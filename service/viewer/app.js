@@ -790,6 +790,7 @@
       // a paused replay's frames reuse old spikes: their age is no latency
       const paused = s.source.replay && !s.source.replay.playing;
       $("fig-latency").textContent = paused ? "paused" : fmt(s.latency_ms, 1);
+      $("fig-latency-unit").classList.toggle("hidden", !!paused);
       $("fig-compute").textContent = fmt(s.compute_ms, 1);
       $("fig-worker").textContent = workerText(w);
       const hasQ = w.quality && w.quality.mode;
