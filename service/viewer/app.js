@@ -217,6 +217,8 @@
     ["fine distinction (MOG, DAISI, still pixels)", /^(mog_.*|still_.*|phi0|phi|daisi_span|close_size|min_area|dilate)$/],
     ["PatchMatch", /^pm_.*$/],
     ["adaptive (skip what the scene does not need)", /^(adaptive|static_tol|static_tile|static_window)$/],
+    ["slow motion (long windows where the scene moves slowly)", /^slow_.*$/],
+    ["carried work (outputs close in time)", /^carry_.*$/],
   ];
   const QUALITY = "quality";
 
