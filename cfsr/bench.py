@@ -259,7 +259,8 @@ TIER_CANDIDATES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("pm 12", {"pm_count": 12}),
     ("pm 12x4", {"pm_count": 12, "pm_step": 4}),
     ("pm 10x5", {"pm_count": 10, "pm_step": 5}),
-    ("fast, pm 16", {"quality": "fast", "pm_count": 16}),
+    ("pm 14", {"pm_count": 14}),
+    ("fast, pm 14", {"quality": "fast", "pm_count": 14}),
     ("fast, pm 12", {"quality": "fast", "pm_count": 12}),
     ("fast", {"quality": "fast"}),
 )

@@ -285,10 +285,10 @@ FINE_PARAMS: dict[str, Param] = {
     "quality": Param(
         "full",
         "",
-        "quality tier: full (every default) or fast (4 MOG frames on the past alone, a "
-        "200-step distinction window, 300-step still reach, 14 PatchMatch targets each side: "
-        "about 0.75x the cost of full, within 0.35 dB of it on the simulator); parameters "
-        "set to other values than their defaults keep them",
+        "quality tier: full (every default) or fast (4 MOG frames 96 steps apart on the past "
+        "alone, a 200-step distinction window, 300-step still reach, PatchMatch search radius "
+        "8: about 0.8x the CPU of full, within 0.15 dB of it on the simulator scenes); "
+        "parameters set to other values than their defaults keep them",
         choices=("full", "fast"),
     ),
     # outputs close together continue from the previous one (_Carry): its history frames are
@@ -386,11 +386,9 @@ QUALITY_TIERS: dict[str, dict[str, Any]] = {
         "T": 200,
         "still_reach": 300,
         # the first PatchMatch target's full search from 8 pixels instead of 16 (no scene
-        # moved), and 14 targets each side instead of 16: the PatchMatch frames and searches
-        # are the largest cost left, and the car (the slowest mover, whose matches average
-        # noise) lost 0.27 dB at 14 and 0.67 dB at 12
+        # moved). The PatchMatch targets stay: they are the largest cost, but 14 a side cost
+        # the pan 0.63 dB and 12 the car 0.48-0.67 (the slow movers average noise over them)
         "pm_radius": 8,
-        "pm_count": 14,
     },
 }
 
