@@ -133,14 +133,18 @@ class ConfigAck(NamedTuple):
 # worker process
 # ----------------------------------------------------------------------------------------------
 class _Task(NamedTuple):
-    """A frame handed to the pool: its step, when its newest spike arrived, the tier, and
-    the config version it was computed under."""
+    """A frame handed to the pool: its step, when its newest spike arrived, the tier, the
+    config version it was computed under, when and to which process it went, and whether it
+    is that process's first frame of its method and tier (which may wait on the compiler)."""
 
     step: int
     arrival: float
     quality: str
     version: int
     submitted: float
+    process: int
+    method: str
+    cold: bool
 
 
 #: a frame whose newest spike arrived longer ago than this is not shown (counted late)
@@ -148,9 +152,11 @@ LATE_S = 1.0
 #: seconds the first frame under a config may be pending before the worker shows frames of a
 #: ready method (TFP) meanwhile: on a first use that frame waits on numba's compiler
 FALLBACK_AFTER_S = 1.0
-#: a pool task pending longer than this is taken for a hang (the first under a config: a
-#: compile, allowed the supervisor's compile timeout)
+#: a pool task pending longer than this is taken for a hang; a process's first frame of a
+#: method and tier may wait on numba's compiler (most of a minute, more on a busy machine)
+#: and is allowed COLD_TASK_HANG_S
 TASK_HANG_S = 120.0
+COLD_TASK_HANG_S = 900.0
 
 
 class _Worker:
@@ -200,6 +206,8 @@ class _Worker:
         self.put("workers", self.pool.workers)
         self.put("threads", self.pool.threads)
         self._tasks: dict[int, _Task] = {}
+        #: (process, method) pairs that returned a frame: their kernels are loaded
+        self._warm: set[tuple[int, str]] = set()
         self._tag = 0
         self._tiers: dict[str, Any] = {}
         self._reset_output()
@@ -368,8 +376,12 @@ class _Worker:
                 self._first_since = now
                 self.put("first_frame_since", now)
             delay = self.slow_first  # test hook: every process waits, as on a compile
-        self.pool.submit(tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)], delay=delay)
-        self._tasks[tag] = _Task(t, arrival, quality, self.config.version, now)
+        k = self.pool.submit(tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)],
+                             delay=delay)
+        cold = (k, cfg.method) not in self._warm
+        self._tasks[tag] = _Task(
+            t, arrival, quality, self.config.version, now, k, cfg.method, cold
+        )
         self._last_submit = t
         self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
         return True
@@ -394,7 +406,9 @@ class _Worker:
                 break
             task = self._tasks.pop(r.tag)
             (t, out), ms = r.outputs[0], r.compute_ms[0]
-            if ms > 0:
+            if task.cold:  # its time holds the kernels' loading or compiling: not a frame's
+                self._warm.add((task.process, task.method))
+            elif ms > 0:
                 old = self._ema.get(task.quality)
                 self._ema[task.quality] = ms if old is None else 0.8 * old + 0.2 * ms
             if task.version != self.config.version:
@@ -428,18 +442,23 @@ class _Worker:
             if not first and time.monotonic() - task.arrival > LATE_S:
                 self.bump("dropped_late")
                 continue
-            self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms)
+            self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms,
+                          timed=not task.cold)
             self.bump("q_" + task.quality)
             shown = True
         return shown
 
     def _check_hangs(self) -> None:
+        """A task pending past its limit is a hung process: PoolError, so the worker exits
+        and the supervisor restarts it with a fresh pool."""
+        from cfsr.pool import PoolError
+
         now = time.monotonic()
         for task in self._tasks.values():
-            first = self._first_pending and task.version == self.config.version
-            if not first and now - task.submitted > TASK_HANG_S:
-                raise RuntimeError(
-                    f"a pool process has computed step {task.step} for "
+            limit = COLD_TASK_HANG_S if task.cold else TASK_HANG_S
+            if now - task.submitted > limit:
+                raise PoolError(
+                    f"pool process {task.process} has computed step {task.step} for "
                     f"{now - task.submitted:.0f} s: taken for a hang"
                 )
 
@@ -477,7 +496,12 @@ class _Worker:
         self._fallback_next = now + 1.0 / self.config.max_fps
         return True
 
-    def _publish(self, t: int, out: Any, method: str, arrival: float, compute_ms: float) -> None:
+    def _publish(
+        self, t: int, out: Any, method: str, arrival: float, compute_ms: float,
+        *, timed: bool = True,
+    ) -> None:
+        """Show frame ``t``; ``timed``: its compute and latency join the status's averages
+        (not a process's first frame of a method, whose time holds the kernels' loading)."""
         from cfsr.display import to_display
 
         gain = self.config.gain
@@ -496,6 +520,8 @@ class _Worker:
         )
         self._last_shown = t
         self.bump("frames_out")
+        if not timed:
+            return
         a = 0.2
         ix = self.ix
         for name, v in (("compute_ms", compute_ms), ("latency_ms", latency_ms)):
