@@ -151,6 +151,9 @@ def _pool_main(
             signal.signal(getattr(signal, sig), signal.SIG_IGN)
     keep_freed_memory()
     _limit_threads(threads)
+    # at exit, do not wait to hand over results nobody may read any more (an owner that died
+    # leaves the queue's pipe full, and the exit would block on it for ever)
+    result_q.cancel_join_thread()
     fd = os.open(path, os.O_RDWR)
     try:
         region = mmap.mmap(fd, size)

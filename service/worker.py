@@ -621,6 +621,9 @@ def worker_main(
     # themselves within a second of our end (cfsr.pool checks its parent), so nothing lingers.
     mp.current_process()._config["daemon"] = False  # type: ignore[attr-defined]
 
+    # at exit, do not wait to hand over events nobody may read any more (a supervisor that
+    # died leaves the queue's pipe full, and the exit would block on it for ever)
+    evt_q.cancel_join_thread()
     w: _Worker | None = None
     try:
         w = _Worker(slot_path, config, evt_q, workers, threads)

@@ -141,3 +141,47 @@ def test_cli_refuses_bad_worker_counts(tmp_path, disk, capsys):
     with pytest.raises(SystemExit):
         main(["reconstruct", str(f), "--workers", "0", "--out", str(tmp_path / "o")])
     assert "1..256" in capsys.readouterr().err
+
+
+_ORPHAN = """
+import os, sys, time
+import numpy as np
+from cfsr.config import MethodConfig
+from cfsr.layout import Layout
+from cfsr.pool import FramePool
+
+if __name__ == "__main__":
+    lay = Layout(400, 250)
+    packed = np.random.default_rng(0).integers(0, 256, (200, lay.frame_bytes), np.uint8)
+    p = FramePool(2, 1)
+    for k in range(2):  # results of 400 x 250 frames that nobody collects fill the pipes
+        p.submit(k, MethodConfig("tfp"), lay, packed, 0, [(40, 200, 199)])
+    print(" ".join(map(str, p.pids)), flush=True)
+    time.sleep(3)
+    os._exit(0)  # the owner dies without closing the pool
+"""
+
+
+def test_a_pool_whose_owner_dies_leaves_no_process(tmp_path):
+    import subprocess
+    import sys
+
+    script = tmp_path / "orphan.py"
+    script.write_text(_ORPHAN)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=90)
+    pids = [int(x) for x in out.stdout.split()]
+    assert len(pids) == 2, out.stderr
+
+    def alive(pid: int) -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        with open(f"/proc/{pid}/stat") as f:  # a zombie is gone for our purpose
+            return f.read().split(")")[-1].split()[0] != "Z"
+
+    end = time.monotonic() + 20
+    while time.monotonic() < end and any(alive(p) for p in pids):
+        time.sleep(0.2)
+    assert not [p for p in pids if alive(p)], "pool processes outlived their owner"
