@@ -939,6 +939,16 @@ def fine_stage(
         active = active_tiles(src, pb, p["static_window"], p["static_tol"], int(p["static_tile"]))
         if active is not None and active.all():
             active = None
+    # the slow-motion windows look only where the static gate per tile finds a change (its
+    # tiles are still: their rate is a long window's already), whatever `adaptive` and the
+    # gate settings, so that every pipeline gives a still window the same output
+    slow_cand = active
+    if not (adaptive and int(p.get("static_tile", 0)) > 0 and int(p["static_tol"]) >= 0):
+        tol = int(p["static_tol"]) if int(p["static_tol"]) >= 0 else 1  # the default's
+        slow_cand = active_tiles(src, pb, p["static_window"], tol,
+                                 int(p.get("static_tile", 0)) or 16)
+        if slow_cand is not None and slow_cand.all():
+            slow_cand = None
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
     hs = _history(src, center, p, active, carried)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
@@ -1031,7 +1041,7 @@ def fine_stage(
         region = region | ghosts
     if adaptive and not region.any():
         rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
-        return slow_fuse(src, center, rate, None, p, active, noise), masks
+        return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
     # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
     # patch's reach of a fine-mask pixel)
     if adaptive:
@@ -1079,7 +1089,7 @@ def fine_stage(
     )
     if not region.any():  # always-full pipeline on a static window: the same TFP output
         rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
-        return slow_fuse(src, center, rate, None, p, active, noise), masks
+        return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
     tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
     dyn = tfi_full.copy()
     crop = dyn[y0:y1, x0:x1]
@@ -1087,7 +1097,7 @@ def fine_stage(
     # 6. ATSR (Eq. 7)
     rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
     # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
-    return slow_fuse(src, center, rate, used, p, active, noise), masks
+    return slow_fuse(src, center, rate, used, p, slow_cand, noise), masks
 
 
 class _Carry(NamedTuple):
