@@ -181,6 +181,33 @@ def throughput_section(tp: dict[str, Any]) -> list[str]:
                         f"{c} cores {_f(v, '.0f')} fps" for c, v in sorted(
                             fc.items(), key=lambda kv: int(kv[0]))) + "."]
         out.append("")
+    live = tp.get("live") or {}
+    runs = [r for r in live.get("runs", []) if "error" not in r]
+    if runs:
+        out += [f"The live service on the demo, replayed at real time (frames published per "
+                f"second over {_f(live.get('seconds'), '.0f')} s, max_fps "
+                f"{_f(live.get('max_fps'), '.0f')}; CFSR's tier auto picks full or fast per "
+                "frame):", "",
+                "| method | tier | processes x threads | fps | full / fast frames | compute ms | "
+                "latency ms | dropped late / out of order |", "|---|---|---|---|---|---|---|---|"]
+        for r in runs:
+            out.append(f"| {r['method']} | {r.get('quality') or ''} | {r['workers']} x "
+                       f"{r['threads']} | {_f(r.get('fps'), '.1f')} | {r.get('full_frames')} / "
+                       f"{r.get('fast_frames')} | {_f(r.get('compute_ms'), '.0f')} | "
+                       f"{_f(r.get('latency_ms'), '.0f')} | {r.get('dropped_late')} / "
+                       f"{r.get('dropped_order')} |")
+        out.append("")
+    dense = tp.get("dense") or {}
+    if dense:
+        out += ["Dense output (one stream, outputs `stride` steps apart, work carried from one "
+                "to the next) against the same method's isolated frame:", "",
+                "| method | stride (steps) | ms per frame | isolated ms | cheaper |",
+                "|---|---|---|---|---|"]
+        for name, d in dense.items():
+            out.append(f"| {name} | {d.get('stride')} | {_f(d.get('ms_per_frame'), '.1f')} | "
+                       f"{_f(d.get('isolated_ms_per_frame'), '.1f')} | "
+                       f"{_f(d.get('speedup'), '.2f')}x |")
+        out.append("")
     sc = tp.get("scaling") or {}
     if sc:
         out += ["Threads (numba and OpenCV pools at 1 and 2 threads; the parallel fraction p by "
