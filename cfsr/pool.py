@@ -32,11 +32,13 @@ import mmap
 import multiprocessing as mp
 import os
 import queue
+import signal
 import tempfile
 import threading
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,6 +54,8 @@ __all__ = [
     "PoolResult",
     "TaskError",
     "default_workers",
+    "ignore_stop_signals",
+    "stop_signals_blocked",
     "pool_outputs",
 ]
 
@@ -140,15 +144,11 @@ def _pool_main(
     index: int, path: str, size: int, threads: int, task_q: Any, result_q: Any, parent: int
 ) -> None:
     """Entry point of a pool process: map the region, answer tasks until told to stop."""
-    import signal
-
     from cfsr._heap import keep_freed_memory
 
-    # Ctrl+C, a closed terminal and Ctrl+\ reach the whole process group: the pool's owner
-    # stops us (and releases what we share) rather than the signal killing us half-way
-    for sig in ("SIGINT", "SIGHUP", "SIGQUIT"):
-        if hasattr(signal, sig):
-            signal.signal(getattr(signal, sig), signal.SIG_IGN)
+    # Ctrl+C, a closed terminal, Ctrl+\ and a kill of the process group reach us too: the
+    # pool's owner stops us (and releases what we share) rather than the signal half-way
+    ignore_stop_signals()
     keep_freed_memory()
     _limit_threads(threads)
     # at exit, do not wait to hand over results nobody may read any more (an owner that died
@@ -191,6 +191,38 @@ def _pool_main(
             result_q.put(("error", index, (task.tag, msg)))
 
 
+#: the signals that end a process group (Ctrl+C, a closed terminal, Ctrl+\, kill): a
+#: child process leaves them to its owner, which stops it cleanly
+STOP_SIGNALS = tuple(
+    getattr(signal, n) for n in ("SIGINT", "SIGHUP", "SIGQUIT", "SIGTERM") if hasattr(signal, n)
+)
+
+
+@contextmanager
+def stop_signals_blocked() -> Iterator[None]:
+    """Block :data:`STOP_SIGNALS` in this thread while child processes start: the mask is
+    inherited across the spawn, so a child importing its modules cannot be ended half-way
+    (with semaphores and shared memory left behind) before it calls
+    :func:`ignore_stop_signals`."""
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def ignore_stop_signals() -> None:
+    """In a child process: ignore :data:`STOP_SIGNALS` (its owner stops it), then unblock
+    them (:func:`stop_signals_blocked`; one that came meanwhile is dropped)."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
 def _shm_folder() -> str:
     return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
 
@@ -230,6 +262,9 @@ class FramePool:
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {workers}")
         self.region_bytes = int(region_bytes)
+        #: the size asked for: a region grown past it for a large task gives the pages beyond
+        #: it back after each task (a large window once must not stay resident)
+        self.base_bytes = self.region_bytes
         self._ctx = mp.get_context("spawn")
         self._procs: list[Any] = []
         self._task_qs: list[Any] = []
@@ -267,7 +302,8 @@ class FramePool:
                     name=f"cfsr-pool-{k}",
                     daemon=True,
                 )
-                p.start()
+                with stop_signals_blocked():
+                    p.start()
                 self._procs.append(p)
             self.pids = [0] * self.workers
             self._unready = set(range(self.workers))
@@ -315,7 +351,7 @@ class FramePool:
         for p in self._procs:
             p.join(3)
             if p.is_alive():
-                p.terminate()
+                p.kill()  # SIGTERM is ignored there (see _pool_main)
                 p.join(2)
         for q in [*self._task_qs, self._result_q]:
             if q is not None:
@@ -342,13 +378,26 @@ class FramePool:
             if not p.is_alive():
                 raise PoolError(f"pool process {k} (pid {p.pid}) exited with code {p.exitcode}")
 
-    def _grow(self, nbytes: int) -> None:
-        busy = dict(self._busy)
-        if busy:
-            raise PoolError("cannot grow the pool's regions while tasks run")
+    def grow(self, nbytes: int) -> None:
+        """Make every region hold ``nbytes`` (restarts the processes: call it with no task
+        pending; ValueError otherwise)."""
+        if self._busy:
+            raise ValueError("the pool's regions can grow only while no task runs")
+        if nbytes <= self.region_bytes:
+            return
         self.close()
-        self.region_bytes = max(nbytes, 2 * self.region_bytes)
+        self.region_bytes = max(int(nbytes), 2 * self.region_bytes)
         self._start()
+
+    def _release(self, k: int) -> None:
+        """Give back the pages of process ``k``'s region beyond :attr:`base_bytes` (its task
+        is done, so nobody reads them)."""
+        extra = self.region_bytes - self.base_bytes
+        if extra > 0 and hasattr(mmap, "MADV_REMOVE") and k < len(self._maps):
+            try:
+                self._maps[k].madvise(mmap.MADV_REMOVE, self.base_bytes, extra)
+            except (OSError, ValueError):  # pragma: no cover - a kernel without it
+                pass
 
     # -- tasks -------------------------------------------------------------------------------
     @property
@@ -390,7 +439,7 @@ class FramePool:
                 raise ValueError(f"output {t} from [{a}, {b}) is outside frames "
                                  f"[{start}, {start + n})")
         if packed.nbytes > self.region_bytes:
-            self._grow(packed.nbytes)
+            self.grow(packed.nbytes)  # ValueError while tasks run
             idle = self.idle
         k = idle[0]
         self._regions[k][: packed.nbytes].reshape(packed.shape)[:] = packed
@@ -419,9 +468,11 @@ class FramePool:
                 continue
             if kind == "done":
                 self._busy.pop(k, None)
+                self._release(k)
                 return payload
             if kind == "error":
                 self._busy.pop(k, None)
+                self._release(k)
                 tag, msg = payload
                 raise TaskError(tag, f"reconstruction of task {tag!r} failed in pool "
                                 f"process {k}: {msg}")
@@ -466,7 +517,7 @@ def pool_outputs(
         pool = FramePool(want, threads, region_bytes=max(need, 1 << 20))
     assert pool is not None
     if need > pool.region_bytes:
-        pool._grow(need)
+        pool.grow(need)
     try:
         done: dict[int, PoolResult] = {}
         nxt = 0  # next group to yield

@@ -367,6 +367,11 @@ class _Worker:
         before, after = cfg.window
         a = max(rec.first_step, t - before)
         b = min(rec.next_step, t + after + 1)
+        if (b - a) * rec.layout.frame_bytes > self.pool.region_bytes:
+            if self.pool.pending:  # a larger window: the regions grow once the pool is idle
+                return False
+            self.pool.grow((b - a) * rec.layout.frame_bytes)
+            self._warm.clear()  # new processes: their first frames load the kernels again
         self._tag += 1
         tag = self._tag
         arrival = self._arrival_of(t + rec.after)
@@ -604,15 +609,13 @@ def worker_main(
     """Entry point of the worker process (spawned by :class:`WorkerSupervisor`): the loop
     over ring blocks, commands and frames, and ``workers`` pool processes of ``threads``
     threads that reconstruct."""
-    import signal
-
     from cfsr._heap import keep_freed_memory
+    from cfsr.pool import ignore_stop_signals
 
-    # Ctrl+C, a closed terminal and Ctrl+\ reach the whole process group: the supervisor
-    # stops us (and our pool, releasing its semaphores and regions), not the signal.
-    for sig in ("SIGINT", "SIGHUP", "SIGQUIT"):
-        if hasattr(signal, sig):
-            signal.signal(getattr(signal, sig), signal.SIG_IGN)
+    # Ctrl+C, a closed terminal, Ctrl+\ and a kill of the process group reach us too: the
+    # supervisor stops us (and our pool, releasing its semaphores and regions), not the
+    # signal; it kills us (SIGKILL) when a stop does not end us.
+    ignore_stop_signals()
     keep_freed_memory()  # frames reuse the last frame's large arrays (no page faults)
     from cfsr.pool import PoolError, TaskError
 
@@ -780,7 +783,10 @@ class WorkerSupervisor:
                 name="cfsr-worker",
                 daemon=True,
             )
-            self._proc.start()
+            from cfsr.pool import stop_signals_blocked
+
+            with stop_signals_blocked():  # until the worker ignores them (worker_main)
+                self._proc.start()
             self._started_at = time.monotonic()
             self._last_message = None
 

@@ -58,10 +58,11 @@ def test_health_status_and_openapi(server):
 def test_limits_are_the_ones_the_api_enforces(server):
     """``GET /api/limits`` (what the viewer's form takes its bounds from) says the rules of
     :mod:`service.settings`, and the API refuses what lies outside them."""
-    from service.settings import MAX_FPS_RANGE, RECORDING_NAME_PATTERN
+    from service.settings import MAX_DISPLAY_PIXELS, MAX_FPS_RANGE, RECORDING_NAME_PATTERN
 
     lim = server.get("/api/limits").json()
     assert lim == {"max_fps": {"minimum": MAX_FPS_RANGE[0], "maximum": MAX_FPS_RANGE[1]},
+                   "max_frame_pixels": MAX_DISPLAY_PIXELS,
                    "recording_name_pattern": RECORDING_NAME_PATTERN}
     over = lim["max_fps"]["maximum"] * 2
     assert server.put("/api/config", json={"max_fps": over}).status_code == 422
