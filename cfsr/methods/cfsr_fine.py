@@ -924,31 +924,10 @@ def fine_stage(
     pa, pb = tfp_span(center, n, static_length(p), p["tfp_mode"])
     gate = static_gate(src, pb, p["static_window"], p["static_tol"]) if adaptive else None
     if gate is not None:
-        # a window the gate passes has no mover for the steady check to catch: isi as is
-        if span_estimator(p) == "isi":  # below two spikes: the TFI at t
-            tfp = span_isi_rate(src, pa, pb, center=center, max_isi=int(p["max_isi"]))
-        else:
-            counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
-            tfp = counts / np.float32(max(1, pb - pa))
         none = np.zeros((h, w), bool)
         _carry_out(memo, int(seed), center, p, None)
-        return np.clip(tfp, 0.0, 1.0).astype(np.float32), {"coarse": none, "fine": none.copy()}
-    # the gate per tile: tiles whose counts (and their neighbours') did not change are static
-    active = None
-    if adaptive and int(p.get("static_tile", 0)) > 0:
-        active = active_tiles(src, pb, p["static_window"], p["static_tol"], int(p["static_tile"]))
-        if active is not None and active.all():
-            active = None
-    # the slow-motion windows look only where the static gate per tile finds a change (its
-    # tiles are still: their rate is a long window's already), whatever `adaptive` and the
-    # gate settings, so that every pipeline gives a still window the same output
-    slow_cand = active
-    if not (adaptive and int(p.get("static_tile", 0)) > 0 and int(p["static_tol"]) >= 0):
-        tol = int(p["static_tol"]) if int(p["static_tol"]) >= 0 else 1  # the default's
-        slow_cand = active_tiles(src, pb, p["static_window"], tol,
-                                 int(p.get("static_tile", 0)) or 16)
-        if slow_cand is not None and slow_cand.all():
-            slow_cand = None
+        return _gated_rate(src, gate, pa, pb, center, p), {"coarse": none, "fine": none.copy()}
+    active, slow_cand = _tile_gates(src, pb, adaptive, p)
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
     hs = _history(src, center, p, active, carried)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
@@ -973,7 +952,84 @@ def fine_stage(
         def tfi_at_t():
             return tfi_t
 
-    # 2. MOG background and moving objects (Eq. 8-9)
+    # 2. MOG background and moving objects (Eq. 8-9), ghosts told by the mirrored history
+    objects, ghosts = _objects(src, center, rates, coarse, sharp, adaptive, p)
+    # 3. DAISI edges (Eq. 10-14)
+    edges = hs["daisi"] >= p["phi"]
+
+    # 4. fine mask, its still pixels (left out, with their run's rate) and PatchMatch's region
+    fine, region, left, tfp = _fine_region(
+        src, center, coarse, objects, edges, ghosts, tfp, hs["words"], p
+    )
+    masks = {"coarse": coarse, "fine": fine}
+    if adaptive and not region.any():
+        rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
+        return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
+    # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
+    # patch's reach of a fine-mask pixel); the ATSR below reads the refined rates on region &
+    # ~left only: the still pixels left out (and, always-full, the pixels outside the region)
+    # are matched but not averaged
+    used = region if left is None else region & ~left
+    refined, (y0, x0), domain = _refine(src, center, seed, region, used, adaptive, p)
+    if not region.any():  # always-full pipeline on a static window: the same TFP output
+        rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
+        return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
+    tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
+    dyn = tfi_full.copy()
+    crop = dyn[y0 : y0 + domain.shape[0], x0 : x0 + domain.shape[1]]
+    crop[domain] = refined[domain]
+    # 6. ATSR (Eq. 7)
+    rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
+    # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
+    return slow_fuse(src, center, rate, used, p, slow_cand, noise), masks
+
+
+def _gated_rate(src: PackedWindow, gate: np.ndarray, pa: int, pb: int, center: int,
+                p: Mapping[str, Any]) -> np.ndarray:
+    """The output of a window the static gate passes (``gate``: its counts over the last
+    span): the static estimate over ``[pa, pb)``, spikes per step in [0, 1]. Such a window
+    has no mover for the steady check to catch, so the isi rule applies as is."""
+    if span_estimator(p) == "isi":  # below two spikes: the TFI at t
+        tfp = span_isi_rate(src, pa, pb, center=center, max_isi=int(p["max_isi"]))
+    else:
+        counts = gate if pb - pa == p["static_window"] else span_counts(src, pa, pb)
+        tfp = counts / np.float32(max(1, pb - pa))
+    return np.clip(tfp, 0.0, 1.0).astype(np.float32)
+
+
+def _tile_gates(
+    src: PackedWindow, pb: int, adaptive: bool, p: Mapping[str, Any]
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(active, slow_cand)``: the pixels of the tiles the static gate per tile does not
+    pass (None: all), for the adaptive stages and for the slow-motion windows.
+
+    The slow-motion windows look only where the gate per tile finds a change (its tiles are
+    still: their rate is a long window's already) whatever ``adaptive`` and the gate
+    settings, so that every pipeline gives a still window the same output."""
+    tile, tol = int(p.get("static_tile", 0)), int(p["static_tol"])
+
+    def tiles(tol: int, tile: int) -> np.ndarray | None:
+        a = active_tiles(src, pb, p["static_window"], tol, tile)
+        return None if a is not None and a.all() else a
+
+    active = tiles(tol, tile) if adaptive and tile > 0 else None
+    if adaptive and tile > 0 and tol >= 0:
+        return active, active
+    return active, tiles(tol if tol >= 0 else 1, tile or 16)  # tol -1: the default's
+
+
+def _objects(
+    src: PackedWindow,
+    center: int,
+    rates: np.ndarray,
+    coarse: np.ndarray,
+    sharp: _Sharp | None,
+    adaptive: bool,
+    p: Mapping[str, Any],
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Eq. 8-9 on the CSR history ``rates`` (oldest first): the moving objects, and the
+    ghosts (None: not tested) that the mirrored history after t tells apart
+    (``mog_sides = both``)."""
     gain = p["mog_gain"]
     if gain <= 0:
         gain = float(np.percentile(rates[-1], 99.5)) if rates[-1].size else 1.0
@@ -997,10 +1053,25 @@ def fine_stage(
             keep = _future_objects(src, center, cand, sharp, gain, match, adaptive, p, hist)
             ghosts = cand & ~keep
             objects = (objects & coarse) | keep
-    # 3. DAISI edges (Eq. 10-14)
-    edges = hs["daisi"] >= p["phi"]
+    return objects, ghosts
 
-    # 4. fine mask
+
+def _fine_region(
+    src: PackedWindow,
+    center: int,
+    coarse: np.ndarray,
+    objects: np.ndarray,
+    edges: np.ndarray,
+    ghosts: np.ndarray | None,
+    tfp: np.ndarray,
+    words: Any,
+    p: Mapping[str, Any],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """Step 4: ``(fine, region, left, tfp)``: the fine mask (the cues' union regularised,
+    its still pixels left out), the region PatchMatch reconstructs (the mask before the still
+    pixels, and the ghosts), the still pixels left out (None: none) and the static estimate
+    with their run's rate there."""
+
     def cues(still: np.ndarray | None = None) -> np.ndarray:
         return fine_mask(
             coarse,
@@ -1024,7 +1095,7 @@ def fine_stage(
             reach=int(p["still_reach"]),
             min_run=int(p["still_run"]),
             jump=float(p["still_jump"]),
-            words=hs["words"],
+            words=words,
         )
         if still.any():
             fine = cues(still)
@@ -1033,17 +1104,28 @@ def fine_stage(
             # a region without them cost the fan's moving pixels 3.7 % more squared error)
             left = still & ~fine
             tfp = np.where(left, still_rate, tfp)
-    masks = {"coarse": coarse, "fine": fine}
     if ghosts is not None:
         # the ghosts are background and leave the fine mask, but stay in the region
         # PatchMatch reconstructs (at zero motion it averages 33 TFI frames there): left to
         # the static estimate, the car lost 1.1 dB (docs/methods.md, "Two-sided objects")
         region = region | ghosts
-    if adaptive and not region.any():
-        rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
-        return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
-    # 5. TFI refined by PatchMatch on the fine region (adaptive: only on the tiles within a
-    # patch's reach of a fine-mask pixel)
+    return fine, region, left, tfp
+
+
+def _refine(
+    src: PackedWindow,
+    center: int,
+    seed: int,
+    region: np.ndarray,
+    used: np.ndarray,
+    adaptive: bool,
+    p: Mapping[str, Any],
+) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
+    """Step 5: the TFI at t refined by PatchMatch (Eq. 3 + the paper's patch averaging) on
+    ``region`` (adaptive: TFI frames and guides only on the tiles within a patch's reach of
+    it), averaged on ``used``. Returns ``(refined, (y0, x0), domain)``: the refined rates of
+    the crop at ``(y0, x0)`` and the crop's pixels they hold."""
+    h, w, n = src.h, src.w, src.n
     if adaptive:
         # a match reaching beyond the computed tiles reads NaN and is never taken (pm_frames);
         # one tile more than a pixel's own patch reads at zero motion leaves room for the
@@ -1067,9 +1149,6 @@ def fine_stage(
         src, tcs, (int(y0), int(y1), int(x0), int(x1)), p, tiles, guide_out=view
     )
     finish_padding(padded, int(p["pm_patch"]))
-    # the ATSR below reads the refined rates on region & ~left only: the still pixels left out
-    # (and, always-full, the pixels outside the region) are matched but not averaged
-    used = region if left is None else region & ~left
     refined = patchmatch_fuse(
         raw[0],
         guides[0],
@@ -1087,17 +1166,7 @@ def fine_stage(
         offsets_steps=[c - center for c in tcs[1:]],
         padded=padded,
     )
-    if not region.any():  # always-full pipeline on a static window: the same TFP output
-        rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
-        return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
-    tfi_full = tfi_at_t()  # TFI at t (computed here when the history did not need it)
-    dyn = tfi_full.copy()
-    crop = dyn[y0:y1, x0:x1]
-    crop[domain] = refined[domain]
-    # 6. ATSR (Eq. 7)
-    rate, _ = atsr_fuse(dyn, tfp, used, tfi=tfi_full)
-    # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
-    return slow_fuse(src, center, rate, used, p, slow_cand, noise), masks
+    return refined, (int(y0), int(x0)), domain
 
 
 class _Carry(NamedTuple):
