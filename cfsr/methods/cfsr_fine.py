@@ -767,9 +767,9 @@ def _history(
     bounds, inv = np.unique(wins, return_inverse=True)
     inv = inv.reshape(wins.shape)
     # which windows take the isi rule: the history frames' (MOG's input) and the one at t
-    isi_win = np.zeros(k + 1, np.bool_)
-    isi_win[:k] = p.get("mog_estimator", "tfp") == "isi"
-    isi_win[k] = span_estimator(p) == "isi"
+    isi_win = np.array(
+        [p.get("mog_estimator", "tfp") == "isi"] * k + [span_estimator(p) == "isi"], np.bool_
+    )
     # the kernels take an empty mask for "no tile gate": every pixel active
     act = np.empty((0, 0), np.bool_) if active is None else active
     ub = np.empty((h, w), np.int32)
@@ -795,23 +795,45 @@ def _history(
         Stored(store, bases),
         act,
     )
-    tfp = tfps[k]
+    words = (store, bases, lo, hi)
     if not (ub >= theta).any():  # every pixel proven static in every history frame
-        return {
-            "words": (store, bases, lo, hi),
-            # static rates, in [0, 1] already
-            "rates": _with_carried(tfps[:k], ends, all_ends, reused, active),
-            "ends": all_ends,
-            "coarse": np.zeros((h, w), bool),
-            "tfi": lambda: _tfi_at(src, center, m),
-            "tfp": tfp,
-            "daisi": daisi,
-        }
+        rates, coarse = tfps[:k], np.zeros((h, w), bool)  # static rates, in [0, 1] already
+        tfi = None
+    else:
+        rates, coarse, tfi = _second_pass(src, ends, words, ub, tfps[:k], act, active, p)
+    return {
+        "words": words,
+        "rates": _with_carried(rates, ends, all_ends, reused, active),
+        "ends": all_ends,
+        "coarse": coarse,
+        "tfi": (lambda: _tfi_at(src, center, m)) if tfi is None else (lambda: tfi),
+        "tfp": tfps[k],
+        "daisi": daisi,
+    }
+
+
+def _second_pass(
+    src: PackedWindow,
+    ends: np.ndarray,
+    words: tuple[np.ndarray, np.ndarray, int, int],
+    ub: np.ndarray,
+    tfps: np.ndarray,
+    act: np.ndarray,
+    active: np.ndarray | None,
+    p: Mapping[str, Any],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The history scan's second pass, when some pixel is not proven static: TFI at every
+    history end (Eq. 3) and the coarse masks (Eq. 5-6) from the stored words; returns the
+    CSR history (TFI where a frame has dynamic pixels, its TFP ``tfps`` elsewhere, as
+    ``csr_frames``), the coarse mask at t and the TFI at t (spikes per step)."""
+    store, bases, lo, hi = words
+    k, h, w = tfps.shape
+    theta = int(p["theta"])
     counts = np.empty((k, h, w), np.int32)
     isi = np.empty((k, h, w), np.int32)
     _dynamic_kernel(
         Words(src.packed, src.geo, lo, hi),
-        _Windows(ends, span, theta, m),
+        _Windows(ends, int(p["T"]), theta, int(p["max_isi"])),
         Stored(store, bases),
         ub,
         counts,
@@ -819,20 +841,10 @@ def _history(
         act,
     )
     masks = counts >= theta
-    # TFI where a frame has dynamic pixels, its clipped TFP elsewhere (as csr_frames)
-    rates = atsr_fuse_isi(isi, tfps[:k], masks, counted=active)
+    rates = atsr_fuse_isi(isi, tfps, masks, counted=active)
     if active is not None:  # static tiles: their (exact) MOG frame at t throughout
         np.copyto(rates[:-1], rates[-1], where=~active)
-    tfi = (1.0 / isi[-1]).astype(np.float32)
-    return {
-        "words": (store, bases, lo, hi),
-        "rates": _with_carried(rates, ends, all_ends, reused, active),
-        "ends": all_ends,
-        "coarse": masks[-1],
-        "tfi": lambda: tfi,
-        "tfp": tfp,
-        "daisi": daisi,
-    }
+    return rates, masks[-1], (1.0 / isi[-1]).astype(np.float32)
 
 
 def _carried_ends(
