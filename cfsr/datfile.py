@@ -369,6 +369,24 @@ def _layout_from(meta: Mapping[str, Any] | None, **given: Any) -> Layout:
     return Layout(**fields)
 
 
+def _regular_file(p: Path) -> os.stat_result:
+    """``p``'s stat when it is a regular file, else SpikeFileError saying what it is."""
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        raise SpikeFileError(f"{p}: no such file") from None
+    except OSError as exc:
+        raise SpikeFileError(f"{p}: cannot read ({exc})") from exc
+    if stat.S_ISDIR(st.st_mode):
+        raise SpikeFileError(f"{p}: is a directory, expected a .dat file")
+    if not stat.S_ISREG(st.st_mode):
+        # a FIFO or device reports size 0 and would block or never end: say what it is
+        raise SpikeFileError(
+            f"{p}: is a {file_kind(st.st_mode)}, not a regular file; a .dat recording is a file"
+        )
+    return st
+
+
 def read_dat(
     path: str | os.PathLike,
     width: int | None = None,
@@ -411,19 +429,7 @@ def read_dat(
         sidecar. The message names the file and the problem.
     """
     p = Path(path)
-    try:
-        st = p.stat()
-    except FileNotFoundError:
-        raise SpikeFileError(f"{p}: no such file") from None
-    except OSError as exc:
-        raise SpikeFileError(f"{p}: cannot read ({exc})") from exc
-    if stat.S_ISDIR(st.st_mode):
-        raise SpikeFileError(f"{p}: is a directory, expected a .dat file")
-    if not stat.S_ISREG(st.st_mode):
-        # a FIFO or device reports size 0 and would block or never end: say what it is
-        raise SpikeFileError(
-            f"{p}: is a {file_kind(st.st_mode)}, not a regular file; a .dat recording is a file"
-        )
+    st = _regular_file(p)
     meta = read_sidecar(p) or {}
     try:
         layout = _layout_from(

@@ -268,6 +268,65 @@ def _score_frames(
 # --------------------------------------------------------------------------- simulated scenes
 
 
+def _scene_names(scenes: Sequence[str] | str | None) -> list[str]:
+    """Simulator scene names from a list, a comma-separated string or None (all); ValueError
+    naming the unknown ones."""
+    from cfsr.simulate import SCENES
+
+    if scenes is None:
+        names = list(SCENES)
+    elif isinstance(scenes, str):
+        names = [s.strip() for s in scenes.split(",") if s.strip()]
+    else:
+        names = [str(s).strip() for s in scenes]
+    unknown = [s for s in names if s.lower() not in SCENES]
+    if unknown:
+        raise ValueError(f"unknown scene(s) {unknown}; choices: {', '.join(SCENES)}")
+    if not names:
+        raise ValueError("no scenes to evaluate")
+    return names
+
+
+def _sim_times(times: Sequence[int] | None, steps: int) -> list[int]:
+    """Output steps inside a simulated run of ``steps`` (default :func:`default_times`)."""
+    ts = default_times(steps) if times is None else [int(t) for t in times]
+    if not ts:
+        raise ValueError("no output times given")
+    bad = [t for t in ts if not 0 <= t < steps]
+    if bad:
+        raise ValueError(f"times {bad} outside the simulated run (0..{steps - 1} steps)")
+    return ts
+
+
+def _simulated(scene: str, steps: int, ts: Sequence[int], seed: int, height: int, width: int,
+               noise: Any) -> tuple[Any, list[np.ndarray], list[np.ndarray], float]:
+    """``scene`` simulated: its packed recording, the 8-bit ground truth and the true motion
+    masks at ``ts``, and its rate scale (the display gain of both)."""
+    from cfsr.display import to_display
+    from cfsr.simulate import simulate
+    from cfsr.spikes import SpikeRecording
+
+    sim = simulate(scene.lower(), steps, seed=seed, height=height, width=width, noise=noise)
+    gain = sim.rate_scale
+    gts = [to_display(sim.ideal_rate(t), gain=gain) for t in ts]
+    masks = [sim.motion_mask(t) for t in ts]
+    # the packed copy is all the methods need: the simulation's arrays go with this frame
+    return SpikeRecording.from_array(sim.spikes, meta={"gain": gain}), gts, masks, gain
+
+
+def _timed_outputs(rec: Any, spec: MethodSpec, ts: Sequence[int], *, warm: bool
+                   ) -> tuple[list[Any], float]:
+    """``spec``'s outputs at ``ts`` and the seconds they took in this process (``warm``: one
+    untimed call first, so a first use's compilation is not counted)."""
+    from cfsr.api import reconstruct_outputs
+
+    if warm:
+        reconstruct_outputs(rec, spec.name, ts[:1], preset=spec.preset, params=spec.params)
+    t0 = time.perf_counter()
+    outs = reconstruct_outputs(rec, spec.name, ts, preset=spec.preset, params=spec.params)
+    return outs, time.perf_counter() - t0
+
+
 def evaluate(
     methods: Sequence[str | MethodSpec] | str | None,
     scenes: Sequence[str] | str | None,
@@ -330,54 +389,23 @@ def evaluate(
     mismatch) a method is scored on how well it recovers the scene, not the noise. Without
     fixed-pattern noise the two are equal.
     """
-    from cfsr.api import reconstruct_outputs
-    from cfsr.display import to_display
     from cfsr.methods.registry import get_method, resolve_params
-    from cfsr.simulate import SCENES, simulate
-    from cfsr.spikes import SpikeRecording
 
     specs = _specs(methods, params_by_method)
-    if scenes is None:
-        scene_names = list(SCENES)
-    elif isinstance(scenes, str):
-        scene_names = [s.strip() for s in scenes.split(",") if s.strip()]
-    else:
-        scene_names = [str(s).strip() for s in scenes]
-    unknown = [s for s in scene_names if s.lower() not in SCENES]
-    if unknown:
-        raise ValueError(f"unknown scene(s) {unknown}; choices: {', '.join(SCENES)}")
-    if not scene_names:
-        raise ValueError("no scenes to evaluate")
+    scene_names = _scene_names(scenes)
     steps = int(steps)
-    ts = default_times(steps) if times is None else [int(t) for t in times]
-    if not ts:
-        raise ValueError("no output times given")
-    bad = [t for t in ts if not 0 <= t < steps]
-    if bad:
-        raise ValueError(f"times {bad} outside the simulated run (0..{steps - 1} steps)")
+    ts = _sim_times(times, steps)
 
     update, close = _progress(progress, len(scene_names) * (1 + len(specs)), "evaluate")
     rows: list[dict[str, Any]] = []
     try:
         for scene in scene_names:
-            sim = simulate(scene.lower(), steps, seed=seed, height=height, width=width, noise=noise)
-            gain = sim.rate_scale
-            gts = [to_display(sim.ideal_rate(t), gain=gain) for t in ts]
-            masks = [sim.motion_mask(t) for t in ts]
-            rec = SpikeRecording.from_array(sim.spikes, meta={"gain": gain})
-            del sim  # the packed copy is all the methods need
+            rec, gts, masks, gain = _simulated(scene, steps, ts, seed, height, width, noise)
             motion = float(np.mean([m.mean() for m in masks]))
             update(f"simulated {scene}")
             for spec in specs:
-                if scene == scene_names[0]:  # JIT compile is not run time: warm up once
-                    reconstruct_outputs(
-                        rec, spec.name, ts[:1], preset=spec.preset, params=spec.params
-                    )
-                t0 = time.perf_counter()
-                outs = reconstruct_outputs(
-                    rec, spec.name, ts, preset=spec.preset, params=spec.params
-                )
-                dt = time.perf_counter() - t0
+                # JIT compile is not run time: warm up once, on the first scene
+                outs, dt = _timed_outputs(rec, spec, ts, warm=scene == scene_names[0])
                 row: dict[str, Any] = {
                     "method": spec.label,
                     "name": spec.name,
@@ -456,7 +484,6 @@ def evaluate_reds(
     """
     import cv2
 
-    from cfsr.api import reconstruct_outputs
     from cfsr.datfile import read_dat
     from cfsr.methods.registry import get_method, resolve_params
 
@@ -475,15 +502,8 @@ def evaluate_reds(
             if not 0 <= frame < rec.n_frames:
                 raise ValueError(f"{dat}: frame {frame} outside 0..{rec.n_frames - 1}")
             for spec in specs:
-                if i == 0:  # files are read-only maps, a type of their own to numba: warm up
-                    reconstruct_outputs(
-                        rec, spec.name, [frame], preset=spec.preset, params=spec.params
-                    )
-                t0 = time.perf_counter()
-                outs = reconstruct_outputs(
-                    rec, spec.name, [frame], preset=spec.preset, params=spec.params
-                )
-                dt = time.perf_counter() - t0
+                # files are read-only maps, a type of their own to numba: warm up on the first
+                outs, dt = _timed_outputs(rec, spec, [frame], warm=i == 0)
                 row: dict[str, Any] = {
                     "method": spec.label,
                     "name": spec.name,

@@ -739,13 +739,11 @@ def _history(
     ends = np.array(
         [center - k * p["mog_stride"] for k in ks if center - k * p["mog_stride"] >= 0], np.int64
     )
-    reused: dict[int, np.ndarray] = {}
-    all_ends = ends
+    all_ends, reused = ends, dict[int, np.ndarray]()
     if carried:
         all_ends, reused = _carried_ends(ends, carried, int(p["mog_stride"]))
         ends = np.array([e for e in all_ends if e not in reused], np.int64)
-    span, m, dspan = int(p["T"]), int(p["max_isi"]), int(p["daisi_span"])
-    theta = int(p["theta"])
+    span, m, dspan, theta = (int(p[key]) for key in ("T", "max_isi", "daisi_span", "theta"))
     spans = [tfp_span(int(e), n, p["mog_window"], p["tfp_mode"]) for e in ends]
     ta = np.array([a for a, _ in spans], np.int64)
     tb = np.array([b for _, b in spans], np.int64)
