@@ -34,7 +34,6 @@ import os
 import queue
 import signal
 import tempfile
-import threading
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Sequence
@@ -272,7 +271,6 @@ class FramePool:
         self._maps: list[mmap.mmap] = []
         self._busy: dict[int, Any] = {}  # worker -> tag of the task it runs
         self._result_q: Any = None
-        self._lock = threading.Lock()
         self._wait = bool(wait)
         self._start()
 
