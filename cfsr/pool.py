@@ -387,6 +387,16 @@ class FramePool:
         self.region_bytes = max(int(nbytes), 2 * self.region_bytes)
         self._start()
 
+    def shrink(self) -> None:
+        """Give the regions back their :attr:`base_bytes` size after a large task (restarts
+        the processes: call it with no task pending; ValueError otherwise)."""
+        if self._busy:
+            raise ValueError("the pool's regions can shrink only while no task runs")
+        if self.region_bytes > self.base_bytes:
+            self.close()
+            self.region_bytes = self.base_bytes
+            self._start()
+
     def _release(self, k: int) -> None:
         """Give back the pages of process ``k``'s region beyond :attr:`base_bytes` (its task
         is done, so nobody reads them)."""

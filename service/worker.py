@@ -367,10 +367,17 @@ class _Worker:
         before, after = cfg.window
         a = max(rec.first_step, t - before)
         b = min(rec.next_step, t + after + 1)
-        if (b - a) * rec.layout.frame_bytes > self.pool.region_bytes:
-            if self.pool.pending:  # a larger window: the regions grow once the pool is idle
+        need = (b - a) * rec.layout.frame_bytes
+        resize = need > self.pool.region_bytes or (
+            self.pool.region_bytes > self.pool.base_bytes >= need  # a large window reverted
+        )
+        if resize:
+            if self.pool.pending:  # the regions change size once the pool is idle
                 return False
-            self.pool.grow((b - a) * rec.layout.frame_bytes)
+            if need > self.pool.region_bytes:
+                self.pool.grow(need)
+            else:
+                self.pool.shrink()
             self._warm.clear()  # new processes: their first frames load the kernels again
         self._tag += 1
         tag = self._tag
