@@ -339,15 +339,23 @@ class FramePool:
                 pass
         self._paths = []
 
-    def close(self) -> None:
-        """Stop the processes and release the regions (idempotent)."""
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop the processes and release the regions (idempotent).
+
+        A process busy with a frame reads its stop only after the frame (seconds while its
+        kernels compile), so those still running ``timeout`` seconds after the stop are
+        killed: nothing they would return is wanted, and the whole close stays bounded (the
+        owner's own stop must not outlast its supervisor's patience, or the owner is killed
+        half-way through releasing its semaphores)."""
         for q in self._task_qs:
             try:
                 q.put(None)
             except (OSError, ValueError):
                 pass
+        end = time.monotonic() + timeout
         for p in self._procs:
-            p.join(3)
+            p.join(max(0.0, end - time.monotonic()))
+        for p in self._procs:
             if p.is_alive():
                 p.kill()  # SIGTERM is ignored there (see _pool_main)
                 p.join(2)

@@ -797,7 +797,12 @@ class WorkerSupervisor:
             self._started_at = time.monotonic()
             self._last_message = None
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float = 10.0) -> None:
+        """Ask the worker to stop; kill it after ``timeout`` seconds.
+
+        The worker closes its pool within about 2 s (``FramePool.close``) and then releases
+        its queues' semaphores at exit; the kill is for a worker that hangs, as one killed
+        during that release leaves a semaphore reported leaked. (SIGTERM is ignored there.)"""
         self._stop.set()
         with self._lock:
             proc = self._proc
@@ -807,9 +812,6 @@ class WorkerSupervisor:
                 except (OSError, ValueError):
                     pass
                 proc.join(timeout)
-                if proc.is_alive():
-                    proc.terminate()
-                    proc.join(2)
                 if proc.is_alive():
                     proc.kill()
                     proc.join(2)
