@@ -7,7 +7,7 @@ import pytest
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods.slowmotion import HALVES, slow_fuse, slow_rates
+from cfsr.methods.slowmotion import HALVES, slow_class, slow_fuse, slow_rates
 from cfsr.simulate import make_scene, simulate
 
 H, W = 48, 64
@@ -98,6 +98,7 @@ def test_fuse_rules():
         "slow_fine_weight": 0.5,
         "slow_fine_full": 0,
         "slow_noise": 0.0,
+        "slow_region_weight": 0.0,  # the slow class: test_slow_class
     }
     assert slow_fuse(src, 300, rate, None, {**p, "slow_reach": 0}) is rate
     # temporal noise breaks the exact bounds: the stage stands aside
@@ -120,6 +121,56 @@ def test_fuse_rules():
     full = inner & (half >= 64)
     assert full.any()
     np.testing.assert_array_equal(out[full], slow[full])
+
+
+def test_slow_class():
+    sim = simulate("vibrate", 600, seed=0, height=H, width=W)
+    src = PackedWindow.from_frames(sim.spikes)
+    p = {
+        "slow_reach": 128,
+        "slow_slack": 1.0,
+        "slow_min": 8,
+        "slow_intervals": 4,
+        "slow_fine_min": 32,
+        "slow_fine_intervals": 12,
+        "slow_fine_weight": 0.5,
+        "slow_fine_full": 0,
+        "slow_noise": 0.0,
+        "slow_region": 9,
+        "slow_region_half": 16,
+        "slow_region_share": 0.9,
+        "slow_region_intervals": 6,
+        "slow_region_weight": 0.5,
+        "slow_rough": 1.3,
+    }
+    everywhere = np.ones((H, W), bool)
+    slow, half, count = slow_rates(src, 300, everywhere, reach=128)
+    fine = np.zeros((H, W), bool)
+    fine[:, : W // 2] = True
+    cls = slow_class(half, count - 1, fine, everywhere, p)
+    # the class: long windows in a square of nearly all long windows, inside the fine region
+    assert cls.any() and not cls[~fine].any()
+    assert (half[cls] >= 16).all() and (count[cls] - 1 >= 6).all()
+    assert not slow_class(half, count - 1, fine, everywhere, {**p, "slow_region": 0}).any()
+    # a lone long window among short ones is not slow: every other pixel's window cut short
+    short = np.where(np.arange(W)[None, :] % 2 == 0, half, 2)
+    assert not slow_class(short, count - 1, fine, everywhere, p).any()
+    # PatchMatch's rate as rough as the windows': the class moves halfway to the window's rate
+    rate = (slow + np.float32(0.01)).astype(np.float32)
+    inner = fine & (half >= 32) & (count - 1 >= 12)
+    base = np.where(inner, np.float32(0.5), np.float32(0.0))
+    wgt = np.where(cls, base + (1 - base) * 0.5, base)
+    out = slow_fuse(src, 300, rate, fine, p)
+    np.testing.assert_allclose(out[fine], (wgt * slow + (1 - wgt) * rate)[fine], atol=1e-6)
+    off = slow_fuse(src, 300, rate, fine, {**p, "slow_region_weight": 0.0})
+    assert np.abs(out - off)[cls & ~inner].max() > 0.004
+    np.testing.assert_array_equal(out[~cls], off[~cls])
+    # a smooth PatchMatch rate (the windows keep a fixed-pattern spread): the class is off
+    flat = np.full((H, W), 0.123, np.float32)
+    np.testing.assert_array_equal(
+        slow_fuse(src, 300, flat, fine, p),
+        slow_fuse(src, 300, flat, fine, {**p, "slow_region_weight": 0.0}),
+    )
 
 
 def _psnr(sim, rate, t, mask=None):

@@ -50,7 +50,15 @@ from cfsr._words import (
 )
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Param
 
-__all__ = ["SLOW_PARAMS", "HALVES", "slow_window", "slow_rates", "slow_reach", "slow_fuse"]
+__all__ = [
+    "SLOW_PARAMS",
+    "HALVES",
+    "slow_window",
+    "slow_rates",
+    "slow_reach",
+    "slow_fuse",
+    "slow_class",
+]
 
 #: Half-widths (steps) of the centred windows tried, shortest first, doubling: the longest
 #: consistent window is found to within half its length (a ladder 1.5x apart costs twice as
@@ -136,6 +144,62 @@ SLOW_PARAMS: dict[str, Param] = {
         "the fine region (0: never)",
         minimum=0,
         maximum=MAX_WINDOW_STEPS // 4,
+    ),
+    # the slow class of a region (slow_fuse): a fine-region pixel whose neighbourhood's windows
+    # are nearly all long moves by a fraction of a pixel over them (a vibrating mount, a drift,
+    # a pan, the inside of a slow mover); there PatchMatch's integer offsets cannot follow the
+    # motion and its average over +-48 steps blurs it, while the window is centred and tested
+    "slow_region": Param(
+        9,
+        "pixels",
+        "slow motion: side of the square over which the share of long windows is measured "
+        "(0: no slow class)",
+        minimum=0,
+        maximum=255,
+    ),
+    "slow_region_half": Param(
+        16,
+        "steps",
+        "slow motion: half-width from which a window counts as long for the slow class (the "
+        "pixel's own window must reach it too)",
+        minimum=1,
+        maximum=MAX_WINDOW_STEPS // 4,
+    ),
+    "slow_region_share": Param(
+        0.9,
+        "",
+        "slow motion: share of the square's pixels with a long window that makes the slow "
+        "class",
+        minimum=0.0,
+        maximum=1.0,
+    ),
+    "slow_region_intervals": Param(
+        6,
+        "intervals",
+        "slow motion: whole intervals a slow-class pixel's window must hold",
+        minimum=0,
+        maximum=MAX_WINDOW_STEPS,
+    ),
+    # halfway: PatchMatch's average over other pixels cancels their gain spread, which a
+    # single pixel's window keeps (full weight: noisy scene -0.8 dB in the motion region)
+    "slow_region_weight": Param(
+        0.5,
+        "",
+        "slow motion: share of PatchMatch's weight the window's rate takes over in the slow "
+        "class (0: class off, 1: the window's rate alone)",
+        minimum=0.0,
+        maximum=1.0,
+    ),
+    # a fixed-pattern spread (per-pixel gain, dark current) makes the windows' rates rougher
+    # than PatchMatch's average of other pixels: 1.4-1.6x on the noisy scene, at most 1.13x
+    # on every noiseless scene and REDS file
+    "slow_rough": Param(
+        1.3,
+        "",
+        "slow motion: ratio of the windows' high-pass energy to PatchMatch's in the slow class "
+        "above which the class is off (a fixed-pattern spread)",
+        minimum=0.0,
+        maximum=100.0,
     ),
 }
 
@@ -388,5 +452,61 @@ def slow_fuse(
             np.float32(p["slow_fine_weight"]),
         )
         inner = fine & (half >= int(p["slow_fine_min"])) & (whole >= int(p["slow_fine_intervals"]))
-        out = np.where(fine, np.where(inner, wgt * slow + (1 - wgt) * rate, rate), out)
+        wgt = np.where(inner, wgt, np.float32(0.0))
+        wgt = _slow_class(slow, rate, half, whole, fine, cand, wgt, p)
+        out = np.where(fine, wgt * slow + (1 - wgt) * rate, out)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
+
+
+def slow_class(
+    half: np.ndarray, whole: np.ndarray, fine: np.ndarray, cand: np.ndarray, p: Mapping[str, Any]
+) -> np.ndarray:
+    """The fine-region pixels of the slow class (bool (H, W)): a region whose windows are
+    nearly all long, i.e. whose motion stays under a fraction of a pixel over them.
+
+    A pixel is in it where its own consistent window reaches ``slow_region_half`` steps each
+    side with ``slow_region_intervals`` whole intervals (``half``, ``whole``: the window's
+    half-width and whole intervals, :func:`slow_rates`), and at least ``slow_region_share``
+    of the ``slow_region``-pixel square around it reach ``slow_region_half`` too (pixels
+    outside ``cand`` lie in tiles the static gate passes: still, so long). The share is the
+    speed class of the region: a fast mover has short windows at its edges and within its
+    texture, which a lone long window inside it does not outweigh.
+    """
+    side = int(p["slow_region"])
+    if side <= 0:
+        return np.zeros(fine.shape, bool)
+    import cv2
+
+    a = int(p["slow_region_half"])
+    long_ = ((half >= a) | ~cand).astype(np.float32)
+    share = cv2.blur(long_, (side, side))  # the square's mean, mirrored at the frame's edge
+    return (
+        fine
+        & (half >= a)
+        & (whole >= int(p["slow_region_intervals"]))
+        & (share >= np.float32(p["slow_region_share"]) - np.float32(1e-6))
+    )
+
+
+def _rough(img: np.ndarray, sel: np.ndarray) -> float:
+    """Mean high-pass energy (the image less its 3 x 3 mean, squared) over ``sel``."""
+    import cv2
+
+    hp = img - cv2.blur(img, (3, 3))
+    return float(np.mean(np.square(hp[sel], dtype=np.float64)))
+
+
+def _slow_class(slow, rate, half, whole, fine, cand, wgt, p) -> np.ndarray:
+    """``wgt`` (the window's weight against PatchMatch's, float32 (H, W)) with the slow class
+    (:func:`slow_class`) moved ``slow_region_weight`` of the way to the window's rate, unless
+    the windows' rates there are ``slow_rough`` times rougher than PatchMatch's (a
+    fixed-pattern spread that only PatchMatch's average of other pixels cancels)."""
+    rw = float(p["slow_region_weight"])
+    if rw <= 0.0:
+        return wgt
+    cls = slow_class(half, whole, fine, cand, p)
+    if not cls.any():
+        return wgt
+    if _rough(slow, cls) > float(p["slow_rough"]) * _rough(rate, cls):
+        return wgt
+    return np.where(cls, wgt + (1 - wgt) * np.float32(rw), wgt).astype(np.float32)
