@@ -11,8 +11,8 @@ from __future__ import annotations
 import logging
 import threading
 
-from driver.source import BlockFlags, Source, SourceEnded, SourceError, SourceState
-from shm.ring import SpikeRing
+from cfsr_live.driver.source import BlockFlags, Source, SourceEnded, SourceError, SourceState
+from cfsr_live.shm.ring import SpikeRing
 
 __all__ = ["Acquisition"]
 

@@ -1,7 +1,7 @@
 """Our USB wire protocol for spike cameras (specified in ``docs/protocol.md``).
 
-Pure functions and constants only: the driver (:mod:`driver.usb`) and the camera emulator
-(:mod:`replay.camera_model`) both use them, so they cannot disagree.
+Pure functions and constants only: the driver (:mod:`cfsr_live.driver.usb`) and the camera emulator
+(:mod:`cfsr_live.replay.camera_model`) both use them, so they cannot disagree.
 
 A stream is a sequence of fixed-size *blocks* on bulk IN endpoint 0x81. Each block is one
 1024-byte header packet followed by ``frames_per_block`` packed frames (the ``.dat`` byte

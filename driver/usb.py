@@ -1,4 +1,4 @@
-"""The USB spike camera as a :class:`~driver.source.Source` (pyusb, imported lazily).
+"""The USB spike camera as a :class:`~cfsr_live.driver.source.Source` (pyusb, imported lazily).
 
 Reads whole protocol blocks (``docs/protocol.md``) with synchronous bulk transfers **in place**
 into one preallocated ``array.array`` (``dev.read(ep, buffer)``, never ``dev.read(ep, size)``),
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from cfsr.layout import Layout
-from driver import protocol as P
-from driver.source import (
+from cfsr_live.driver import protocol as P
+from cfsr_live.driver.source import (
     Block,
     BlockFlags,
     CameraControl,
@@ -69,7 +69,7 @@ class UsbCameraSource(Source):
     Parameters
     ----------
     vid, pid : int
-        USB ids (defaults: the emulator's placeholder ids, ``driver.protocol``).
+        USB ids (defaults: the emulator's placeholder ids, ``cfsr_live.driver.protocol``).
     serial : str, optional
         Only open the camera with this serial number.
     frames_per_block : int
@@ -78,7 +78,7 @@ class UsbCameraSource(Source):
     read_timeout_ms : int
         Timeout of one bulk read.
     backend : pyusb backend, optional
-        For tests (``replay.fake_usb.FakeUsbBackend``); default libusb.
+        For tests (``cfsr_live.replay.fake_usb.FakeUsbBackend``); default libusb.
     backoff : (float, float)
         First and largest delay between reconnection attempts, seconds.
     """

@@ -2,8 +2,8 @@
 protocol (``docs/protocol.md``), vendor control requests and fault injection.
 
 One class shared by every emulation tier, so they cannot disagree: the fake pyusb backend
-(:mod:`replay.fake_usb`, unit tests) and the usbdevfs emulator under umockdev
-(:mod:`replay.umockdev_camera`, real libusb + pyusb). Frames come from a recording
+(:mod:`cfsr_live.replay.fake_usb`, unit tests) and the usbdevfs emulator under umockdev
+(:mod:`cfsr_live.replay.umockdev_camera`, real libusb + pyusb). Frames come from a recording
 (memory-mapped ``.dat``), looped; the device's frame counter keeps counting.
 
 Rules reproduced from the real Linux USB stack (``notes/usb-emulation.md`` section 4.3): an IN
@@ -50,7 +50,7 @@ import numpy as np
 
 from cfsr.layout import STEP_RATE_HZ
 from cfsr.spikes import SpikeRecording
-from driver import protocol as P
+from cfsr_live.driver import protocol as P
 
 __all__ = ["CameraModel", "FAULTS"]
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from cfsr.datfile import DatReader, FileShrankError
 from cfsr.spikes import SpikeRecording
-from driver.source import (
+from cfsr_live.driver.source import (
     Block,
     BlockFlags,
     ReplayControl,
@@ -99,7 +99,7 @@ class _ReplayControl(ReplayControl):
 
 
 class ReplayDevice(Source):
-    """Play a recording through the :class:`~driver.source.Source` interface.
+    """Play a recording through the :class:`~cfsr_live.driver.source.Source` interface.
 
     Parameters
     ----------

@@ -3,8 +3,8 @@
 ``usb.core.find(backend=FakeUsbBackend(model))`` returns a genuine ``usb.core.Device``: pyusb's
 own code runs (configuration, interface claim, descriptor parsing, ``dev.read`` into a
 caller's ``array.array``); only the layer below pyusb (normally libusb) is emulated, by
-:class:`replay.camera_model.CameraModel`. Fast unit tests of the driver logic use it; the
-umockdev tier (:mod:`replay.umockdev_camera`) runs the real libusb instead. Importing this
+:class:`cfsr_live.replay.camera_model.CameraModel`. Fast unit tests of the driver logic use it; the
+umockdev tier (:mod:`cfsr_live.replay.umockdev_camera`) runs the real libusb instead. Importing this
 module needs pyusb (it is test tooling; the driver itself imports pyusb lazily).
 
 :class:`PreloadedUsbBackend` is the same device with its bulk stream built once in memory:
@@ -24,8 +24,8 @@ from types import SimpleNamespace
 import numpy as np
 import usb.backend
 
-from driver import protocol as P
-from replay.camera_model import CameraModel
+from cfsr_live.driver import protocol as P
+from cfsr_live.replay.camera_model import CameraModel
 
 __all__ = ["FakeUsbBackend", "PreloadedUsbBackend", "STRINGS"]
 

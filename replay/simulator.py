@@ -1,6 +1,7 @@
 """The simulator as a source: a synthetic scene simulated in memory and played like the camera.
 
-``pattern`` is the built-in toy scene (:mod:`replay.pattern`, NumPy only); other scene names are
+``pattern`` is the built-in toy scene (:mod:`cfsr_live.replay.pattern`, NumPy only); other scene
+names are
 simulated by :func:`cfsr.simulate.simulate` when that module is available. The clip loops, so
 the source streams for as long as it is read, through the same interface (and the same replay
 controls) as a recording.
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from cfsr.spikes import SpikeRecording
-from replay.device import ReplayDevice
+from cfsr_live.replay.device import ReplayDevice
 
 __all__ = ["SimulatorSource", "simulate_recording"]
 
@@ -80,7 +81,7 @@ def _pattern_clip(steps: int, height: int, width: int, seed: int) -> SpikeRecord
     (tracemalloc showed no growth), because the allocator keeps the freed blocks of each
     thread's arena. The frames are made read-only: every source made from them shares them.
     """
-    from replay.pattern import pattern_recording
+    from cfsr_live.replay.pattern import pattern_recording
 
     rec = pattern_recording(steps, height=height, width=width, seed=seed)
     rec.packed_frames.flags.writeable = False

@@ -3,8 +3,8 @@
 umockdev's preload library (``umockdev-wrapper python ...``) redirects ``/sys``, ``/dev`` and
 udev into a test bed; the emulated node ``/dev/bus/usb/001/002`` forwards every usbdevfs
 ``ioctl`` to :class:`UsbdevfsCamera`, which completes URBs in place (same address space) from
-:class:`replay.camera_model.CameraModel`. libusb enumerates it through sysfs/udev, parses its
-descriptors, claims the interface and submits/reaps URBs exactly as with a real device.
+:class:`cfsr_live.replay.camera_model.CameraModel`. libusb enumerates it through sysfs/udev, parses
+its descriptors, claims the interface and submits/reaps URBs exactly as with a real device.
 
 Driven through ctypes only (``libumockdev.so.0``, ``libgobject-2.0.so.0``), no PyGObject.
 Struct layouts and ioctl numbers are x86-64 (``<linux/usbdevice_fs.h>``). Adapted from the
@@ -43,8 +43,8 @@ from ctypes import (
     c_void_p,
 )
 
-from driver import protocol as P
-from replay.camera_model import CameraModel
+from cfsr_live.driver import protocol as P
+from cfsr_live.replay.camera_model import CameraModel
 
 __all__ = ["EmulatedCamera", "UsbdevfsCamera", "available", "preloaded", "STRINGS"]
 

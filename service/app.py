@@ -1,8 +1,8 @@
 """The FastAPI application factory.
 
 ``create_app(settings)`` builds an app whose lifespan owns every resource: it starts the
-source, acquisition, ring and worker (:class:`service.runtime.Runtime`) and the frame hub on
-startup, and stops them in reverse on shutdown. ``cfsr serve`` starts the runtime itself first,
+source, acquisition, ring and worker (:class:`cfsr_live.service.runtime.Runtime`) and the frame hub
+on startup, and stops them in reverse on shutdown. ``cfsr serve`` starts the runtime itself first,
 so that a source that cannot open is one line and not a server trace, and hands it over with
 ``create_app(settings, runtime=rt)``: the lifespan then owns (and stops) that one. Routers are
 split by concern (``service/routers``); shared state reaches handlers through dependencies
@@ -25,11 +25,11 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from cfsr.cli import version
-from service.body import MAX_QUOTE, StrictJsonBody, short
-from service.hub import FrameHub
-from service.runtime import Runtime
-from service.security import AttemptThrottle, SessionStore
-from service.settings import Settings
+from cfsr_live.service.body import MAX_QUOTE, StrictJsonBody, short
+from cfsr_live.service.hub import FrameHub
+from cfsr_live.service.runtime import Runtime
+from cfsr_live.service.security import AttemptThrottle, SessionStore
+from cfsr_live.service.settings import Settings
 
 __all__ = ["create_app", "viewer_dir"]
 
@@ -39,14 +39,26 @@ log = logging.getLogger("cfsr.app")
 def viewer_dir(settings: Settings | None = None) -> Path:
     if settings is not None and settings.viewer_dir is not None:
         return Path(settings.viewer_dir)
-    # package data: the viewer ships inside the wheel, beside this module
-    return Path(__file__).resolve().parent / "viewer"
+    # package data: the viewer ships inside the wheel as cfsr_live.viewer (the repository's
+    # viewer/ folder), found by import so that the checkout and a wheel agree
+    from importlib.resources import files
+
+    return Path(str(files("cfsr_live.viewer")))
 
 
 def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     """The app; ``runtime`` is an already started :class:`Runtime` to own (else one is made)."""
-    from service.routers import config, debug, health, media, record, session, sources, status
-    from service.security import HostOriginGuard, allowed_hosts
+    from cfsr_live.service.routers import (
+        config,
+        debug,
+        health,
+        media,
+        record,
+        session,
+        sources,
+        status,
+    )
+    from cfsr_live.service.security import HostOriginGuard, allowed_hosts
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -116,7 +128,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         app.include_router(r.router)
     if settings.test_hooks:
         app.include_router(debug.router)
-    # every request body, strict JSON of bounded size, before any route (service.body)
+    # every request body, strict JSON of bounded size, before any route (cfsr_live.service.body)
     app.add_middleware(StrictJsonBody)
     # outermost: a request from a foreign page or a rebinding name goes no further
     app.add_middleware(

@@ -4,13 +4,13 @@ Two figures, each as x real time (40,000 frames/s of 400 x 250 one-bit frames, 5
 several runs (median, min, max and every run), with zero-loss accounting per run:
 
 * ``driver``: the host side alone, with no emulator in the loop: pyusb,
-  :class:`driver.usb.UsbCameraSource` (header, payload CRC, loss accounting),
-  :class:`driver.acquisition.Acquisition` and the ring, fed by
-  :class:`replay.fake_usb.PreloadedUsbBackend` (blocks built once in memory; one ``memmove``
-  per read stands in for the kernel's copy to user memory and is reported apart, as
+  :class:`cfsr_live.driver.usb.UsbCameraSource` (header, payload CRC, loss accounting),
+  :class:`cfsr_live.driver.acquisition.Acquisition` and the ring, fed by
+  :class:`cfsr_live.replay.fake_usb.PreloadedUsbBackend` (blocks built once in memory; one
+  ``memmove`` per read stands in for the kernel's copy to user memory and is reported apart, as
   ``transport_copy``).
 * ``end_to_end``: the emulated USB camera under umockdev: the real libusb and pyusb against
-  :mod:`replay.umockdev_camera`, streaming unpaced. umockdev calls the emulator on its own
+  :mod:`cfsr_live.replay.umockdev_camera`, streaming unpaced. umockdev calls the emulator on its own
   thread of the measuring process, so each run also reports the CPU milliseconds per block of
   the driver's thread (pyusb, libusb and umockdev's client side, the driver, the ring write),
   the emulator's thread and the ring consumer: the two costs apart.
@@ -29,7 +29,7 @@ top level. The consumer also checks that the indices it read follow on (``consum
 that it read every frame published (``consumer.unaccounted``). The top-level
 ``realtime_factor`` and ``frames_per_s`` are the end-to-end median, as before.
 
-Run directly: ``python -m service.benchmarks --seconds 5 --runs 5`` (``--part driver`` or
+Run directly: ``python -m cfsr_live.service.benchmarks --seconds 5 --runs 5`` (``--part driver`` or
 ``--part end-to-end`` for one figure).
 """
 
@@ -70,7 +70,7 @@ _PRELOADED_BLOCKS = 16  # 51 MB of 256-frame blocks: more than the CPU caches ho
 
 def _recording(tmp: Path):
     from cfsr.datfile import read_dat, write_dat
-    from replay.pattern import pattern_recording
+    from cfsr_live.replay.pattern import pattern_recording
 
     p = tmp / "bench.dat"
     write_dat(p, pattern_recording(2048))
@@ -133,8 +133,8 @@ def _run(
 ) -> dict[str, Any]:
     """One run: acquire from the opened ``src`` into a fresh ring for ``seconds`` of wall time
     after the first block, with a consumer reading the ring; close both."""
-    from driver.acquisition import Acquisition
-    from shm.ring import SpikeRing
+    from cfsr_live.driver.acquisition import Acquisition
+    from cfsr_live.shm.ring import SpikeRing
 
     ring = SpikeRing.create(_RING_SLOTS, src.info.max_block_frames, src.info.layout.frame_bytes)
     acq = Acquisition(src, ring)
@@ -244,9 +244,9 @@ def driver_throughput(seconds: float = 5.0, runs: int = 5, *, recording=None) ->
 
     ``seconds`` is shared by the ``runs`` (at least 0.5 s each).
     """
-    from driver.usb import UsbCameraSource
-    from replay.camera_model import CameraModel
-    from replay.fake_usb import PreloadedUsbBackend
+    from cfsr_live.driver.usb import UsbCameraSource
+    from cfsr_live.replay.camera_model import CameraModel
+    from cfsr_live.replay.fake_usb import PreloadedUsbBackend
 
     with tempfile.TemporaryDirectory() as d:
         rec = recording if recording is not None else _recording(Path(d))
@@ -264,9 +264,9 @@ def driver_throughput(seconds: float = 5.0, runs: int = 5, *, recording=None) ->
 
 
 def _usb(seconds: float, runs: int) -> dict[str, Any]:
-    from driver.usb import UsbCameraSource
-    from replay import umockdev_camera as U
-    from replay.camera_model import CameraModel
+    from cfsr_live.driver.usb import UsbCameraSource
+    from cfsr_live.replay import umockdev_camera as U
+    from cfsr_live.replay.camera_model import CameraModel
 
     out = []
     block_bytes = 0
@@ -292,7 +292,7 @@ def _usb(seconds: float, runs: int) -> dict[str, Any]:
 
 
 def _replay(seconds: float, runs: int) -> dict[str, Any]:
-    from replay.device import ReplayDevice
+    from cfsr_live.replay.device import ReplayDevice
 
     out = []
     with tempfile.TemporaryDirectory() as d:
@@ -308,7 +308,7 @@ def _replay(seconds: float, runs: int) -> dict[str, Any]:
 
 def end_to_end_throughput(seconds: float = 5.0, runs: int = 5) -> dict[str, Any]:
     """The emulated USB camera -> driver -> ring (see the module notes for the fallbacks)."""
-    from replay import umockdev_camera as U
+    from cfsr_live.replay import umockdev_camera as U
 
     ok, why = U.available()
     if ok:
@@ -316,7 +316,7 @@ def end_to_end_throughput(seconds: float = 5.0, runs: int = 5) -> dict[str, Any]
     wrapper = shutil.which("umockdev-wrapper")
     if wrapper:
         r = subprocess.run(
-            [wrapper, sys.executable, "-m", "service.benchmarks", "--part", "end-to-end",
+            [wrapper, sys.executable, "-m", "cfsr_live.service.benchmarks", "--part", "end-to-end",
              "--seconds", str(seconds), "--runs", str(runs)],
             capture_output=True,
             text=True,

@@ -11,7 +11,8 @@ the spelling let ``NaN`` through to an error page that could not render it):
 * the request then reaches FastAPI with ``Content-Type: application/json`` and the same bytes,
   so FastAPI's own parsing sees exactly what was checked.
 
-Types are strict past this point: the request models (:mod:`service.models`) run in pydantic's
+Types are strict past this point: the request models (:mod:`cfsr_live.service.models`) run in
+pydantic's
 strict mode (no ``true`` for a number, no ``"32"`` for an integer), and every error the API
 answers quotes at most :data:`MAX_QUOTE` characters of what it was sent (:func:`short`).
 """

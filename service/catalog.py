@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from driver.source import Source
-from service.settings import MAX_DISPLAY_PIXELS, Settings, SourceSpec
+from cfsr_live.driver.source import Source
+from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, Settings, SourceSpec
 
 __all__ = ["SourceCatalog", "CatalogEntry", "SIM_SCENES"]
 
@@ -234,7 +234,7 @@ class SourceCatalog:
 
     def scan(self) -> dict[str, CatalogEntry]:
         out: dict[str, CatalogEntry] = {}
-        from service.demo import demo_path
+        from cfsr_live.service.demo import demo_path
 
         dp = demo_path(self.settings.demo_steps)
         demo = CatalogEntry(id="demo", kind="demo", name="built-in demo (simulated disk)")
@@ -319,7 +319,7 @@ class SourceCatalog:
     def open(self, spec: SourceSpec) -> Source:
         s = self.settings
         if spec.kind == "demo":
-            from service.demo import ensure_demo
+            from cfsr_live.service.demo import ensure_demo
 
             path = ensure_demo(s.demo_steps, say=lambda m: log.warning("%s", m))
             return self._replay(path, name="demo")
@@ -328,7 +328,7 @@ class SourceCatalog:
                 raise ValueError("replay source needs a file")
             return self._replay(spec.path)
         if spec.kind == "usb":
-            from driver.usb import UsbCameraSource
+            from cfsr_live.driver.usb import UsbCameraSource
 
             kw = {}
             if spec.vid is not None:
@@ -337,8 +337,8 @@ class SourceCatalog:
                 kw["pid"] = spec.pid
             return UsbCameraSource(**kw)
         if spec.kind == "sim":
-            from replay.simulator import SimulatorSource
-            from service.settings import cache_dir
+            from cfsr_live.replay.simulator import SimulatorSource
+            from cfsr_live.service.settings import cache_dir
 
             return SimulatorSource(
                 spec.scene or "pattern", speed=s.speed, cache_dir=cache_dir() / "sim"
@@ -346,7 +346,7 @@ class SourceCatalog:
         raise ValueError(f"unknown source kind {spec.kind!r}")
 
     def _replay(self, path: Path, name: str | None = None) -> Source:
-        from replay.device import ReplayDevice
+        from cfsr_live.replay.device import ReplayDevice
 
         s = self.settings
         return ReplayDevice(

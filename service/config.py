@@ -12,8 +12,8 @@ Three frozen dataclasses, each validated when it is made and then passed on as i
 
 Why dataclasses and not the HTTP models: the same values come from the command line
 (``cfsr serve --method --param --max-fps``) and from HTTP, and the worker must not depend on
-the web stack's model classes; the HTTP models (:mod:`service.models`) take their bounds from
-the same constants, for the OpenAPI document.
+the web stack's model classes; the HTTP models (:mod:`cfsr_live.service.models`) take their bounds
+from the same constants, for the OpenAPI document.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from cfsr.config import MethodConfig
-from service.settings import MAX_FPS_RANGE
+from cfsr_live.service.settings import MAX_FPS_RANGE
 
 __all__ = [
     "GAIN_MODES",
@@ -86,8 +86,8 @@ class DisplayScale:
 
 
 def check_max_fps(max_fps: float) -> float:
-    """``max_fps`` as a float within :data:`~service.settings.MAX_FPS_RANGE`, else ValueError
-    (written so that NaN fails too: every comparison with NaN is false)."""
+    """``max_fps`` as a float within :data:`~cfsr_live.service.settings.MAX_FPS_RANGE`, else
+    ValueError (written so that NaN fails too: every comparison with NaN is false)."""
     lo, hi = MAX_FPS_RANGE
     v = float(max_fps)
     if not (math.isfinite(v) and lo <= v <= hi):

@@ -9,7 +9,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from service.settings import cache_dir
+from cfsr_live.service.settings import cache_dir
 
 __all__ = ["demo_path", "ensure_demo", "DEMO_SCENE"]
 
@@ -47,7 +47,7 @@ def ensure_demo(steps: int = 6000, *, say: Callable[[str], None] | None = None) 
         else:
             log.warning("cfsr.simulate is unavailable; the demo uses the built-in pattern scene")
             from cfsr.datfile import write_dat
-            from replay.pattern import pattern_recording
+            from cfsr_live.replay.pattern import pattern_recording
 
             write_dat(out, pattern_recording(steps))
         try:

@@ -9,10 +9,10 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Request, WebSocket, status
 from starlette.requests import HTTPConnection
 
-from service.hub import FrameHub
-from service.runtime import Runtime
-from service.security import SESSION_COOKIE, AttemptThrottle
-from service.settings import Settings
+from cfsr_live.service.hub import FrameHub
+from cfsr_live.service.runtime import Runtime
+from cfsr_live.service.security import SESSION_COOKIE, AttemptThrottle
+from cfsr_live.service.settings import Settings
 
 __all__ = [
     "HubDep",
@@ -59,9 +59,10 @@ def token_matches(settings: Settings, given: str) -> bool:
 
 def token_ok(conn: HTTPConnection) -> bool:
     """The token from a header (``Authorization: Bearer``, ``X-CFSR-Token``) or a live
-    session cookie (:class:`service.security.SessionStore`); never from the URL, which
+    session cookie (:class:`cfsr_live.service.security.SessionStore`); never from the URL, which
     servers log. A wrong header token counts against the client's throttle, and a client
-    over it is refused (429) whatever it sends (:class:`service.security.AttemptThrottle`)."""
+    over it is refused (429) whatever it sends
+    (:class:`cfsr_live.service.security.AttemptThrottle`)."""
     state = conn.app.state
     settings: Settings = state.settings
     if not settings.token:

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from service.status import ClientDrops, HubStatus
-from shm.frameslot import FrameSlot, SlotFrame
+from cfsr_live.service.status import ClientDrops, HubStatus
+from cfsr_live.shm.frameslot import FrameSlot, SlotFrame
 
 __all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message", "WS_HEADER"]
 

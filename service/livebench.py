@@ -6,7 +6,7 @@ a method, CFSR's live tier (auto, full, fast) and the pool's processes x threads
 counts the frames the worker published over ``seconds`` after a settling period (the first
 frames of a configuration load kernels), so the figure is what a viewer receives at most (the
 WebSocket sends every frame the slot gets to a client that keeps up). Registered in the
-``cfsr.benchmarks`` entry-point group as ``live``; ``python -m service.livebench`` runs it
+``cfsr.benchmarks`` entry-point group as ``live``; ``python -m cfsr_live.service.livebench`` runs it
 alone.
 """
 
@@ -33,9 +33,9 @@ LIVE_CONFIGS: tuple[tuple[str, str, int, int], ...] = (
 
 def _run_one(method: str, quality: str, workers: int, threads: int, seconds: float,
              settle: float, max_fps: float) -> dict[str, Any]:
-    from service.config import ConfigChange
-    from service.runtime import Runtime
-    from service.settings import Settings
+    from cfsr_live.service.config import ConfigChange
+    from cfsr_live.service.runtime import Runtime
+    from cfsr_live.service.settings import Settings
 
     rt = Runtime(Settings(method="tfp", max_fps=max_fps, workers=workers, threads=threads,
                           warmup=False))

@@ -7,14 +7,14 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from service.config import GainMode
-from service.settings import (
+from cfsr_live.service.config import GainMode
+from cfsr_live.service.settings import (
     MAX_DISPLAY_PIXELS,
     MAX_FPS_RANGE,
     MIN_DISPLAY_GAIN,
     RECORDING_NAME_PATTERN,
 )
-from service.status import (
+from cfsr_live.service.status import (
     ClientDrops,
     Drops,
     RecordStatus,
@@ -52,7 +52,7 @@ __all__ = [
 
 #: Request bodies are read in pydantic's strict mode: ``true`` is no number, ``1`` no boolean,
 #: ``"32"`` no integer (a client that sends them has a bug the service should name, not guess
-#: around). Bodies are strict JSON before they get here (:mod:`service.body`).
+#: around). Bodies are strict JSON before they get here (:mod:`cfsr_live.service.body`).
 STRICT = ConfigDict(strict=True)
 
 
@@ -118,7 +118,7 @@ class Limits(BaseModel):
     """Bounds the API enforces, for clients that check input before sending it.
 
     Why an endpoint: the viewer's form fields take them from here, so each rule is written
-    once (:mod:`service.settings`) and a change there reaches the page with no edit to it.
+    once (:mod:`cfsr_live.service.settings`) and a change there reaches the page with no edit to it.
     """
 
     max_fps: NumberRange = Field(

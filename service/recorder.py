@@ -10,7 +10,8 @@ cleanly when the free space falls under the reserve while it runs (other writers
 disk). Whatever stops it (``stop_reason``), the ``.dat`` holds whole frames only and its sidecar
 is written atomically, so the recording opens.
 
-The ``.dat`` and its sidecar are created through :mod:`service.safefs` (:class:`FolderDatWriter`):
+The ``.dat`` and its sidecar are created through :mod:`cfsr_live.service.safefs`
+(:class:`FolderDatWriter`):
 exclusively, never through a symbolic link, in a folder opened inside the data folder; a name
 that exists in any form (another server's recording, a dangling link) is refused before a byte
 is written.
@@ -35,14 +36,14 @@ from cfsr.datfile import (
     validate_sidecar,
 )
 from cfsr.layout import Layout
-from driver.source import BlockFlags
-from service.safefs import create_exclusive, name_taken, write_json_at
-from shm.ring import SpikeRing
+from cfsr_live.driver.source import BlockFlags
+from cfsr_live.service.safefs import create_exclusive, name_taken, write_json_at
+from cfsr_live.shm.ring import SpikeRing
 
 if TYPE_CHECKING:
     # not at run time: ``cfsr record`` imports this module (:func:`size_cap`) in the base
     # install, which has no pydantic; only the live service asks a recorder for its status
-    from service.status import RecordStatus
+    from cfsr_live.service.status import RecordStatus
 
 __all__ = ["FolderDatWriter", "Recorder", "RESERVE_BYTES", "free_bytes", "size_cap"]
 
@@ -63,8 +64,8 @@ def free_bytes(folder: Path | int) -> int:
 
 class FolderDatWriter(DatWriter):
     """A :class:`~cfsr.datfile.DatWriter` whose ``.dat`` and sidecar are created in an open
-    folder (``dir_fd``) with :mod:`service.safefs`: the ``.dat`` exclusively and never through
-    a link (FileExistsError when ``NAME.dat`` or ``NAME.dat.json`` exists in any form), the
+    folder (``dir_fd``) with :mod:`cfsr_live.service.safefs`: the ``.dat`` exclusively and never
+    through a link (FileExistsError when ``NAME.dat`` or ``NAME.dat.json`` exists in any form), the
     sidecar by an atomic rename. Same checks, whole-frame trimming and sidecar as the base
     class, which opens its file by path (following links, truncating what is there)."""
 
@@ -272,7 +273,7 @@ class Recorder:
 
     def status(self) -> RecordStatus:
         """The recorder's report (``recording`` in ``GET /api/status``, ``GET /api/record``)."""
-        from service.status import RecordStatus
+        from cfsr_live.service.status import RecordStatus
 
         running = self.running  # read once: a stop reason shows only once it has stopped
         return RecordStatus(

@@ -7,7 +7,7 @@ import io
 
 import numpy as np
 
-from shm.frameslot import SlotFrame
+from cfsr_live.shm.frameslot import SlotFrame
 
 __all__ = ["render_rgb", "encode_png", "encode_jpeg", "HEAT_LUT", "MASK_COLORS"]
 

@@ -1,9 +1,9 @@
 """The service's moving parts, owned by the FastAPI lifespan: source, acquisition thread,
 ring, worker supervisor, frame hub and recorder.
 
-Data flow: ``Source.read_block`` -> :class:`~driver.acquisition.Acquisition` ->
-:class:`~shm.ring.SpikeRing` (shared memory) -> worker process -> latest-frame slot ->
-:class:`~service.hub.FrameHub` -> per-client latest-only queues.
+Data flow: ``Source.read_block`` -> :class:`~cfsr_live.driver.acquisition.Acquisition` ->
+:class:`~cfsr_live.shm.ring.SpikeRing` (shared memory) -> worker process -> latest-frame slot ->
+:class:`~cfsr_live.service.hub.FrameHub` -> per-client latest-only queues.
 """
 
 from __future__ import annotations
@@ -17,14 +17,14 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
 from cfsr.layout import STEP_RATE_HZ, Layout
-from driver.acquisition import Acquisition
-from driver.source import ReplayControl, Source
-from service.catalog import SourceCatalog
-from service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
-from service.kernels import KernelWarmup
-from service.safefs import UnsafePathError, open_subfolder
-from service.settings import MAX_DISPLAY_PIXELS, RECORDING_NAME_RE, Settings, SourceSpec
-from service.status import (
+from cfsr_live.driver.acquisition import Acquisition
+from cfsr_live.driver.source import ReplayControl, Source
+from cfsr_live.service.catalog import SourceCatalog
+from cfsr_live.service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
+from cfsr_live.service.kernels import KernelWarmup
+from cfsr_live.service.safefs import UnsafePathError, open_subfolder
+from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, RECORDING_NAME_RE, Settings, SourceSpec
+from cfsr_live.service.status import (
     Drops,
     HubStatus,
     RateMeter,
@@ -35,13 +35,13 @@ from service.status import (
     ring_status,
     source_report,
 )
-from service.worker import WorkerSupervisor
-from shm.frameslot import FrameSlot
-from shm.ring import SpikeRing
+from cfsr_live.service.worker import WorkerSupervisor
+from cfsr_live.shm.frameslot import FrameSlot
+from cfsr_live.shm.ring import SpikeRing
 
 if TYPE_CHECKING:
-    from service.hub import FrameHub
-    from service.recorder import Recorder
+    from cfsr_live.service.hub import FrameHub
+    from cfsr_live.service.recorder import Recorder
 
 __all__ = ["Runtime", "ConflictError"]
 
@@ -157,7 +157,7 @@ class Runtime:
 
     def _check_geometry(self, src: Source) -> None:
         """ValueError (HTTP 422) when ``src``'s frames are larger than the display's frame
-        slot holds (:data:`~service.settings.MAX_DISPLAY_PIXELS`): such a source would be
+        slot holds (:data:`~cfsr_live.service.settings.MAX_DISPLAY_PIXELS`): such a source would be
         accepted and never shown (and its ring sized for frames nobody can display)."""
         lay = src.info.layout
         limit = self.slot.max_pixels if self.slot is not None else MAX_DISPLAY_PIXELS
@@ -286,7 +286,7 @@ class Runtime:
         applied it.
 
         All or nothing: a value out of range raises ValueError here (the new
-        :class:`~service.config.LiveConfig` cannot be made); a configuration the worker
+        :class:`~cfsr_live.service.config.LiveConfig` cannot be made); a configuration the worker
         cannot apply (it keeps running the old one) raises ValueError with the worker's
         reason, and the stored configuration is not changed. When the worker has not
         answered within :attr:`config_ack_timeout_s`, the configuration is stored (the
@@ -331,7 +331,7 @@ class Runtime:
         """Record the live stream to ``DATA_DIR/recordings/NAME.dat`` (+ sidecar), capped at
         ``max_bytes`` (default: the free space less the recorder's reserve); OSError when not
         even one block fits."""
-        from service.recorder import Recorder
+        from cfsr_live.service.recorder import Recorder
 
         with self._lock:
             if self.recorder is not None and self.recorder.running:
@@ -345,7 +345,7 @@ class Runtime:
                 name += ".dat"
             folder = self.settings.data_dir / "recordings"
             try:
-                # never through a link, never outside the data folder (service.safefs)
+                # never through a link, never outside the data folder (cfsr_live.service.safefs)
                 dir_fd = open_subfolder(self.settings.data_dir, "recordings")
             except UnsafePathError as exc:
                 raise ConflictError(str(exc)) from None

@@ -1,5 +1,5 @@
 """The live service's status as typed values: each component reports its own small model and
-:meth:`service.runtime.Runtime.status` composes them into :class:`StatusModel`
+:meth:`cfsr_live.service.runtime.Runtime.status` composes them into :class:`StatusModel`
 (``GET /api/status``, ``/metrics``).
 
 Who reports what:
@@ -18,7 +18,8 @@ response cannot drift from its declared shape (each model is validated where it 
 not once at the end by the HTTP layer).
 
 Only pydantic is imported here, not FastAPI: the hub, the recorder and the supervisor use
-these models without the web stack; :mod:`service.models` re-exports them for the HTTP API.
+these models without the web stack; :mod:`cfsr_live.service.models` re-exports them for the HTTP
+API.
 """
 
 from __future__ import annotations
@@ -29,12 +30,12 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, Field
 
-from service.kernels import KernelStatus
+from cfsr_live.service.kernels import KernelStatus
 
 if TYPE_CHECKING:
-    from driver.acquisition import Acquisition
-    from driver.source import Source
-    from shm.ring import SpikeRing
+    from cfsr_live.driver.acquisition import Acquisition
+    from cfsr_live.driver.source import Source
+    from cfsr_live.shm.ring import SpikeRing
 
 __all__ = [
     "ClientDrops",
@@ -129,7 +130,7 @@ def source_report(
     shape ``GET /api/status`` always had); a camera adds its device status, or the error
     that reading it raised (the camera may be gone right now).
     """
-    from driver.source import CameraControl, ReplayControl
+    from cfsr_live.driver.source import CameraControl, ReplayControl
 
     if src is None:
         status = SourceStatus(id=source_id, kind=None, name=None, state=None, rate_hz=rate_hz,

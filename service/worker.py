@@ -15,7 +15,7 @@ rejected with the reason while the previous configuration keeps running
 Everything that crosses the process boundary is a small frozen dataclass (pickled by the
 queues): commands :class:`Configure`, :class:`Attach`, :class:`Inject`, :class:`Stop` to the
 worker; events :class:`Ready`, :class:`ConfigAnswer`, :class:`WorkerError` (a failed frame,
-or a fatal error) back. A :class:`~service.config.WorkerConfig` was validated where it was
+or a fatal error) back. A :class:`~cfsr_live.service.config.WorkerConfig` was validated where it was
 made (in the web process) and is applied as is.
 """
 
@@ -35,9 +35,9 @@ from dataclasses import dataclass, replace
 from typing import Any, Literal, NamedTuple
 
 from cfsr.layout import Layout
-from service.config import WorkerConfig
-from service.status import QualityShare, RateMeter, WorkerReport, WorkerStatus
-from shm.frameslot import FrameSlot
+from cfsr_live.service.config import WorkerConfig
+from cfsr_live.service.status import QualityShare, RateMeter, WorkerReport, WorkerStatus
+from cfsr_live.shm.frameslot import FrameSlot
 
 __all__ = [
     "Attach",
@@ -180,7 +180,7 @@ class _Worker:
         threads: int = 1,
     ) -> None:
         from cfsr.pool import FramePool
-        from shm.frameslot import STAT_FIELDS
+        from cfsr_live.shm.frameslot import STAT_FIELDS
 
         self.slot = FrameSlot.attach(slot_path)
         self.evt_q = evt_q
@@ -235,7 +235,7 @@ class _Worker:
 
     # -- configuration ------------------------------------------------------------------------
     def attach(self, ring_path: str, layout: Layout) -> None:
-        from shm.ring import SpikeRing
+        from cfsr_live.shm.ring import SpikeRing
 
         if self.reader is not None:
             self._lost_base += self.reader.lost_frames
@@ -315,7 +315,7 @@ class _Worker:
             blk = reader.poll()
             if blk is None:
                 break
-            from driver.source import BlockFlags
+            from cfsr_live.driver.source import BlockFlags
 
             if blk.flags & BlockFlags.DISCONTINUITY:
                 rec.reset(blk.index)

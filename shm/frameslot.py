@@ -1,7 +1,7 @@
 """The latest-frame slot: shared memory from the worker process to the web process.
 
 Holds exactly one frame (the newest): the 8-bit display image, the coarse and fine masks, and
-the metadata of the step, behind the package's seqlock (:mod:`shm.seqlock`; the sequence
+the metadata of the step, behind the package's seqlock (:mod:`cfsr_live.shm.seqlock`; the sequence
 number is the frame number, so a reader asks for "newer than the one I have" and retries if
 the writer was busy). A second region holds the worker's live counters (heartbeat, timings,
 drops) as float64 words the worker updates in place: single words, read without the lock,
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from shm.files import attach_shared_file, create_shared_file, release_shared_file
-from shm.seqlock import EMPTY, WRITING, Seqlock
+from cfsr_live.shm.files import attach_shared_file, create_shared_file, release_shared_file
+from cfsr_live.shm.seqlock import EMPTY, WRITING, Seqlock
 
 __all__ = ["FRAME_PREFIX", "STAT_FIELDS", "FrameSlot", "SlotFrame"]
 

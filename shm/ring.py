@@ -10,8 +10,8 @@ read at their own pace.
 * Every block carries a sequence number, its first step index, flags, and the cumulative frame
   count before it, so a consumer that was overrun *detects* it, skips to fresh data, and counts
   exactly how many frames it lost (:attr:`RingReader.lost_frames`).
-* Each slot is guarded by the package's seqlock (:mod:`shm.seqlock`): its sequence number is
-  the block number, invalidated before the payload is touched and set after, so a consumer
+* Each slot is guarded by the package's seqlock (:mod:`cfsr_live.shm.seqlock`): its sequence number
+is the block number, invalidated before the payload is touched and set after, so a consumer
   re-checks it after using the data and discards a torn read.
 """
 
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from shm.files import attach_shared_file, create_shared_file, release_shared_file
-from shm.seqlock import WRITING, Seqlock
+from cfsr_live.shm.files import attach_shared_file, create_shared_file, release_shared_file
+from cfsr_live.shm.seqlock import WRITING, Seqlock
 
 __all__ = ["RING_PREFIX", "RingBlock", "RingReader", "SpikeRing"]
 

@@ -46,9 +46,9 @@ def free_port() -> int:
 
 def segments_of(pid: int) -> list[Path]:
     """Shared-memory files (spike ring, frame slot) that process ``pid`` created."""
-    from shm.files import shared_dirs
-    from shm.frameslot import FRAME_PREFIX
-    from shm.ring import RING_PREFIX
+    from cfsr_live.shm.files import shared_dirs
+    from cfsr_live.shm.frameslot import FRAME_PREFIX
+    from cfsr_live.shm.ring import RING_PREFIX
 
     return sorted(p for d in set(shared_dirs()) if d.is_dir()
                   for pre in (RING_PREFIX, FRAME_PREFIX) for p in d.glob(f"{pre}-{pid}-*"))
@@ -87,7 +87,8 @@ def read_blocks(
     check: Callable[[Any], None] | None = None,
     block_timeout: float = 0.5,
 ) -> list[Any]:
-    """``k`` blocks from ``src`` (a :class:`driver.source.Source`), each passed to ``check``
+    """``k`` blocks from ``src`` (a :class:`cfsr_live.driver.source.Source`), each passed to
+    ``check``
     first; AssertionError with the source's counters if they do not come within ``timeout`` s.
 
     Each read waits for its block itself (``block_timeout``), so the polling never sleeps."""
@@ -126,7 +127,7 @@ def streamed_outputs(
 
 def write_pattern(path: Path, steps: int = 4000, **kw) -> Path:
     from cfsr.datfile import write_dat
-    from replay.pattern import pattern_recording
+    from cfsr_live.replay.pattern import pattern_recording
 
     path.parent.mkdir(parents=True, exist_ok=True)
     write_dat(path, pattern_recording(steps, **kw))
@@ -258,7 +259,7 @@ class LiveServer:
 def ws_frames(server: LiveServer, n: int, *, timeout: float = 60.0, method: str | None = None,
               query: str = ""):
     """Receive ``n`` decoded frames (optionally only those of ``method``) over the WebSocket."""
-    from service.hub import decode_ws_message
+    from cfsr_live.service.hub import decode_ws_message
 
     out = []
     end = time.monotonic() + timeout

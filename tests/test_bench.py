@@ -185,7 +185,7 @@ def _fake_run(rtf: float, lost: int = 0, cpu: float | None = 1.0) -> dict:
 
 
 def test_summarize_runs_reports_median_spread_and_summed_loss():
-    from service.benchmarks import summarize_runs
+    from cfsr_live.service.benchmarks import summarize_runs
 
     runs = [_fake_run(3.0), _fake_run(1.0, lost=2, cpu=None), _fake_run(2.0, cpu=3.0)]
     s = summarize_runs(runs, "somewhere")
@@ -203,8 +203,8 @@ def test_summarize_runs_reports_median_spread_and_summed_loss():
 
 def test_driver_throughput_measures_the_driver_alone_with_zero_loss():
     pytest.importorskip("usb.core")
-    from replay.pattern import pattern_recording
-    from service.benchmarks import driver_throughput
+    from cfsr_live.replay.pattern import pattern_recording
+    from cfsr_live.service.benchmarks import driver_throughput
 
     res = driver_throughput(seconds=1.0, runs=2, recording=pattern_recording(512))
     assert res["n_runs"] == 2 and "no emulator" in res["source"]

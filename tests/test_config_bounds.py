@@ -162,9 +162,9 @@ def service(tmp_path_factory):
     from fastapi.testclient import TestClient
 
     from cfsr.datfile import write_dat
-    from replay.pattern import pattern_recording
-    from service.app import create_app
-    from service.settings import Settings, SourceSpec
+    from cfsr_live.replay.pattern import pattern_recording
+    from cfsr_live.service.app import create_app
+    from cfsr_live.service.settings import Settings, SourceSpec
 
     data = tmp_path_factory.mktemp("cfgsvc")
     path = data / "a.dat"
@@ -306,7 +306,7 @@ def test_model_level_checks_without_the_json_guard():
 
     from pydantic import ValidationError
 
-    from service.models import ConfigUpdate, DisplayConfig, ReplayUpdate, SeekRequest
+    from cfsr_live.service.models import ConfigUpdate, DisplayConfig, ReplayUpdate, SeekRequest
 
     for model, field in [
         (ConfigUpdate, "max_fps"),

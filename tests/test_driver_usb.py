@@ -1,6 +1,6 @@
 """USB driver logic against the fake pyusb backend (Tier 0: pyusb's own code runs, the layer
-below it is :class:`replay.camera_model.CameraModel`). The same scenarios run against the real
-libusb under umockdev in ``tests/usb/umock_cases.py``."""
+below it is :class:`cfsr_live.replay.camera_model.CameraModel`). The same scenarios run against the
+real libusb under umockdev in ``tests/usb/umock_cases.py``."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from livehelpers import wait_until
 
 pytest.importorskip("usb.core")
 
-from driver import protocol as P  # noqa: E402
-from driver.source import BlockFlags, CameraControl, ReplayControl, SourceState  # noqa: E402
-from driver.usb import UsbCameraSource  # noqa: E402
-from replay.camera_model import CameraModel  # noqa: E402
-from replay.fake_usb import FakeUsbBackend, PreloadedUsbBackend  # noqa: E402
-from replay.pattern import pattern_recording  # noqa: E402
+from cfsr_live.driver import protocol as P  # noqa: E402
+from cfsr_live.driver.source import BlockFlags, CameraControl, ReplayControl, SourceState  # noqa: E402
+from cfsr_live.driver.usb import UsbCameraSource  # noqa: E402
+from cfsr_live.replay.camera_model import CameraModel  # noqa: E402
+from cfsr_live.replay.fake_usb import FakeUsbBackend, PreloadedUsbBackend  # noqa: E402
+from cfsr_live.replay.pattern import pattern_recording  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -84,7 +84,7 @@ def row_symlink_loop_in_the_data_folder(c: Ctx) -> None:
 
 def row_recording_larger_than_the_display(c: Ctx) -> None:
     from cfsr.datfile import write_dat
-    from replay.pattern import pattern_recording
+    from cfsr_live.replay.pattern import pattern_recording
 
     big = c.data / "big.dat"
     write_dat(big, pattern_recording(4, height=1032, width=1024))
@@ -427,7 +427,7 @@ def test_blank_token_is_refused_for_a_non_loopback_bind():
                             "--port", "1"], env={**os.environ, "CFSR_TOKEN": token},
                            cwd=REPO, capture_output=True, text=True, timeout=120)
         assert r.returncode == 2 and "token" in r.stderr, (token, r.stderr)
-    from service.settings import Settings
+    from cfsr_live.service.settings import Settings
 
     with pytest.raises(ValueError, match="blank"):
         Settings(host="0.0.0.0", token="  ")
@@ -441,7 +441,7 @@ def test_readyz_is_false_when_a_streaming_source_makes_no_frame(monkeypatch):
     from fastapi import FastAPI
     from fastapi.testclient import TestClient
 
-    from service.routers import health
+    from cfsr_live.service.routers import health
 
     class W:
         alive = True

@@ -34,9 +34,9 @@ from cfsr.datfile import (
     write_dat,
 )
 from cfsr.layout import Layout
-from driver.source import BlockFlags, ReplayControl, SourceEnded, SourceState
-from replay.device import ReplayDevice
-from replay.pattern import pattern_recording
+from cfsr_live.driver.source import BlockFlags, ReplayControl, SourceEnded, SourceState
+from cfsr_live.replay.device import ReplayDevice
+from cfsr_live.replay.pattern import pattern_recording
 
 REPO = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "NUMBA_CACHE_DIR": str(REPO / ".cache" / "numba")}
@@ -79,8 +79,8 @@ def test_truncated_under_a_running_replay_ends_it_cleanly(tmp_path):
     dat = _pattern(tmp_path / "scene.dat", 4000)
     r = _isolated(f"""
         import json, os, threading
-        from driver.source import ReplayControl, SourceEnded
-        from replay.device import ReplayDevice
+        from cfsr_live.driver.source import ReplayControl, SourceEnded
+        from cfsr_live.replay.device import ReplayDevice
         dev = ReplayDevice({str(dat)!r}, mode="paced", speed=20.0, loop=True, block_frames=64)
         dev.open()
         out = {{"blocks": 0, "ended": None}}
@@ -121,8 +121,8 @@ def test_rewritten_shorter_file_then_controls_do_not_revive_it(tmp_path):
     short = _pattern(tmp_path / "short.dat", 100)
     r = _isolated(f"""
         import json
-        from driver.source import ReplayControl, SourceEnded
-        from replay.device import ReplayDevice
+        from cfsr_live.driver.source import ReplayControl, SourceEnded
+        from cfsr_live.replay.device import ReplayDevice
         dev = ReplayDevice({str(dat)!r}, mode="fast", loop=True, block_frames=256)
         dev.open()
         first = dev.read_block(0).data.copy()
@@ -407,8 +407,8 @@ def hostile_folder(tmp_path):
 
 
 def test_catalog_survives_bad_files_and_reports_them(hostile_folder, caplog):
-    from service.catalog import SourceCatalog
-    from service.settings import Settings, SourceSpec
+    from cfsr_live.service.catalog import SourceCatalog
+    from cfsr_live.service.settings import Settings, SourceSpec
 
     cat = SourceCatalog(Settings(data_dir=hostile_folder, source=SourceSpec("demo")))
     with caplog.at_level("INFO", logger="cfsr.catalog"):

@@ -14,7 +14,7 @@ from livehelpers import wait_until
 
 import cfsr
 from cfsr import warmup
-from service.kernels import KernelWarmup
+from cfsr_live.service.kernels import KernelWarmup
 
 # the package, not the function cfsr.methods() that shadows it as an attribute of cfsr
 REGISTRY = importlib.import_module("cfsr.methods")

@@ -37,12 +37,21 @@ def test_wheel_holds_the_viewer_and_registers_the_live_commands(wheel_file):
         entry_points = z.read(eps).decode()
         meta = z.read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
     for f in ("index.html", "app.js", "style.css"):
-        assert f"service/viewer/{f}" in names
+        assert f"cfsr_live/viewer/{f}" in names
     assert "cfsr/cli/__init__.py" in names and "cfsr/__main__.py" in names
-    assert not any(n.startswith(("tests/", "viewer/")) for n in names)
+    # two top-level names: the library and the application, no generic ones
+    # (service, driver, replay, shm, viewer would collide with other packages)
+    top = {n.split("/")[0] for n in names if ".dist-info/" not in n}
+    assert top == {"cfsr", "cfsr_live"}, top
+    # every module of the tree's layers is in the wheel, under its mapped name
+    for layer, under in (("cfsr", "cfsr"), ("service", "cfsr_live/service"),
+                         ("driver", "cfsr_live/driver"), ("replay", "cfsr_live/replay"),
+                         ("shm", "cfsr_live/shm"), ("viewer", "cfsr_live/viewer")):
+        for f in (REPO / layer).rglob("*.py"):
+            assert f"{under}/{f.relative_to(REPO / layer).as_posix()}" in names, f
     assert "[cfsr.commands]" in entry_points
-    assert "serve = service.commands.serve" in entry_points
-    assert "record = service.commands.record" in entry_points
+    assert "serve = cfsr_live.service.commands.serve" in entry_points
+    assert "record = cfsr_live.service.commands.record" in entry_points
     assert "cfsr = cfsr.cli:main" in entry_points
     for extra in ("live", "cluster", "bench", "all"):
         assert f"Provides-Extra: {extra}" in meta

@@ -7,9 +7,15 @@ import numpy as np
 import pytest
 
 from cfsr.datfile import read_dat, write_dat
-from driver.source import BlockFlags, CameraControl, ReplayControl, SourceEnded, SourceState
-from replay.device import ReplayDevice
-from replay.pattern import pattern_recording
+from cfsr_live.driver.source import (
+    BlockFlags,
+    CameraControl,
+    ReplayControl,
+    SourceEnded,
+    SourceState,
+)
+from cfsr_live.replay.device import ReplayDevice
+from cfsr_live.replay.pattern import pattern_recording
 
 
 @pytest.fixture(scope="module")
@@ -145,7 +151,7 @@ def test_bad_arguments(dat):
 
 def test_facility_interfaces_are_enforced():
     """A facility that lacks a method of its interface cannot be made (Facility is an ABC)."""
-    from driver.source import Facility
+    from cfsr_live.driver.source import Facility
 
     class HalfReplay(ReplayControl):
         def play(self) -> None: ...

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from shm.ring import SpikeRing
+from cfsr_live.shm.ring import SpikeRing
 
 FB = 64  # small frames keep the tests fast; the ring does not care about geometry
 
@@ -207,7 +207,7 @@ def test_finish_is_seen_by_an_attached_reader(ring):
 
 
 def test_seqlock_words():
-    from shm.seqlock import EMPTY, WRITING, Seqlock
+    from cfsr_live.shm.seqlock import EMPTY, WRITING, Seqlock
 
     words = np.zeros(3, np.int64)
     lock = Seqlock(words)
@@ -228,8 +228,10 @@ def test_shm_imports_nothing_of_ours():
     import sys
 
     code = (
-        "import sys, shm.files, shm.seqlock, shm.ring, shm.frameslot\n"
-        "bad = [m for m in ('cfsr', 'driver', 'replay', 'service') if m in sys.modules]\n"
+        "import sys, cfsr_live.shm.files, cfsr_live.shm.seqlock, cfsr_live.shm.ring, "
+        "cfsr_live.shm.frameslot\n"
+        "bad = [m for m in ('cfsr', 'cfsr_live.driver', 'cfsr_live.replay', 'cfsr_live.service') "
+        "if m in sys.modules]\n"
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -9,7 +9,7 @@ from fastapi import FastAPI, WebSocket
 from fastapi.testclient import TestClient
 from livehelpers import LiveServer, write_pattern
 
-from service.security import (
+from cfsr_live.service.security import (
     AttemptThrottle,
     HostOriginGuard,
     SessionStore,

@@ -57,8 +57,8 @@ def test_health_status_and_openapi(server):
 
 def test_limits_are_the_ones_the_api_enforces(server):
     """``GET /api/limits`` (what the viewer's form takes its bounds from) says the rules of
-    :mod:`service.settings`, and the API refuses what lies outside them."""
-    from service.settings import MAX_DISPLAY_PIXELS, MAX_FPS_RANGE, RECORDING_NAME_PATTERN
+    :mod:`cfsr_live.service.settings`, and the API refuses what lies outside them."""
+    from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, MAX_FPS_RANGE, RECORDING_NAME_PATTERN
 
     lim = server.get("/api/limits").json()
     assert lim == {"max_fps": {"minimum": MAX_FPS_RANGE[0], "maximum": MAX_FPS_RANGE[1]},
@@ -346,7 +346,7 @@ def test_token_is_enforced(data_dir):
 
 def test_non_loopback_bind_needs_token():
     from cfsr.cli import build_parser
-    from service.commands.serve import build_settings
+    from cfsr_live.service.commands.serve import build_settings
 
     args = build_parser().parse_args(["serve", "--host", "0.0.0.0"])
     args.token = None

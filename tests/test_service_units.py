@@ -9,9 +9,9 @@ import os
 import numpy as np
 import pytest
 
-from service.hub import ClientQueue, FrameHub, decode_ws_message, encode_ws_message
-from service.settings import Settings, SourceSpec
-from shm.frameslot import FrameSlot
+from cfsr_live.service.hub import ClientQueue, FrameHub, decode_ws_message, encode_ws_message
+from cfsr_live.service.settings import Settings, SourceSpec
+from cfsr_live.shm.frameslot import FrameSlot
 
 
 def _slot_with_frame(h=5, w=7, step=2**40 + 3):
@@ -125,8 +125,8 @@ def test_settings_token_rule(tmp_path):
 
 
 def test_catalog_lists_only_the_data_folder(tmp_path):
-    from replay.pattern import pattern_recording
-    from service.catalog import SourceCatalog
+    from cfsr_live.replay.pattern import pattern_recording
+    from cfsr_live.service.catalog import SourceCatalog
 
     data = tmp_path / "data"
     (data / "deep" / "er").mkdir(parents=True)

@@ -192,7 +192,7 @@ def test_viewer_in_chromium(browser, server, tmp_path):
         assert "No spike data lost" in title or "Spike data WAS lost" in title, title
 
     # the form's bounds come from GET /api/limits (the rules are written once, in the service)
-    from service.settings import MAX_FPS_RANGE
+    from cfsr_live.service.settings import MAX_FPS_RANGE
 
     assert float(page.get_attribute("#max-fps", "max")) == MAX_FPS_RANGE[1]
     assert float(page.get_attribute("#max-fps", "min")) == MAX_FPS_RANGE[0]

@@ -12,13 +12,13 @@ from cfsr.api import reconstruct_outputs
 from cfsr.config import MethodConfig
 from cfsr.display import to_display
 from cfsr.methods.registry import get_method, resolve_params
-from driver.acquisition import Acquisition
-from replay.device import ReplayDevice
-from replay.pattern import pattern_recording
-from service.config import WorkerConfig
-from service.worker import WorkerSupervisor, pick_tier
-from shm.frameslot import FrameSlot
-from shm.ring import SpikeRing
+from cfsr_live.driver.acquisition import Acquisition
+from cfsr_live.replay.device import ReplayDevice
+from cfsr_live.replay.pattern import pattern_recording
+from cfsr_live.service.config import WorkerConfig
+from cfsr_live.service.worker import WorkerSupervisor, pick_tier
+from cfsr_live.shm.frameslot import FrameSlot
+from cfsr_live.shm.ring import SpikeRing
 
 H, W, N = 24, 32, 6000
 GAIN = 0.6

@@ -39,7 +39,7 @@ def _writer(out: Path, info, meta: dict, *, force: bool):
     """The output's writer: created exclusively and never through a link (a name that
     appeared meanwhile, or a dangling link planted there, is refused); ``force`` removes
     what is there first (the link itself, not what it points to)."""
-    from service.recorder import FolderDatWriter
+    from cfsr_live.service.recorder import FolderDatWriter
 
     folder = out.resolve().parent if not out.is_symlink() else out.absolute().parent
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
@@ -60,7 +60,7 @@ def _writer(out: Path, info, meta: dict, *, force: bool):
 
 
 def run(args: argparse.Namespace) -> int:
-    from driver.source import SourceEnded
+    from cfsr_live.driver.source import SourceEnded
 
     out: Path = args.output
     if os.path.lexists(out) and not args.force:
@@ -69,17 +69,17 @@ def run(args: argparse.Namespace) -> int:
         from cfsr.cli._extras import require_extra
 
         require_extra("live", ["usb"])
-        from driver.usb import UsbCameraSource
+        from cfsr_live.driver.usb import UsbCameraSource
 
         kw = {k: v for k, v in (("vid", args.vid), ("pid", args.pid)) if v is not None}
         src = UsbCameraSource(**kw)
     elif args.replay is not None:
-        from replay.device import ReplayDevice
+        from cfsr_live.replay.device import ReplayDevice
 
         # a file or a simulation is converted as fast as it can be written (nothing skipped)
         src = ReplayDevice(args.replay, mode="fast", loop=False)
     else:
-        from replay.simulator import SimulatorSource
+        from cfsr_live.replay.simulator import SimulatorSource
 
         src = SimulatorSource(args.sim, mode="fast")
     with src:
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         want = args.frames if args.frames is not None else int(round(args.seconds * info.rate_hz))
         if want < 1:
             raise ValueError("nothing to record: ask for at least one frame")
-        from service.recorder import size_cap
+        from cfsr_live.service.recorder import size_cap
 
         fb = info.layout.frame_bytes
         cap = size_cap(out.resolve().parent, args.max_bytes, fb, f"one frame ({fb} bytes)")

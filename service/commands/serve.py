@@ -50,8 +50,8 @@ def _bounded(lo: float, hi: float, what: str):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from cfsr.cli._common import add_pool_arguments
-    from replay.device import MAX_SPEED, MIN_SPEED
-    from service.settings import MAX_FPS_RANGE, RING_SECONDS_RANGE
+    from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
+    from cfsr_live.service.settings import MAX_FPS_RANGE, RING_SECONDS_RANGE
 
     fps_lo, fps_hi = MAX_FPS_RANGE
     ring_lo, ring_hi = RING_SECONDS_RANGE
@@ -104,7 +104,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def build_settings(args: argparse.Namespace):
-    from service.settings import Settings, SourceSpec, default_data_dir
+    from cfsr_live.service.settings import Settings, SourceSpec, default_data_dir
 
     if (args.vid is not None or args.pid is not None) and not args.usb:
         raise ValueError("--vid/--pid only apply with --usb")
@@ -175,7 +175,7 @@ def _check_data_dir(path: Path) -> None:
 
 
 def _check_viewer(settings) -> None:
-    from service.app import viewer_dir
+    from cfsr_live.service.app import viewer_dir
 
     page = viewer_dir(settings) / "index.html"
     if not page.is_file():
@@ -188,11 +188,11 @@ def _check_viewer(settings) -> None:
 def _remove_stale_segments() -> int:
     """Shared-memory files of a server that crashed (its pid is gone): removed, and counted.
 
-    Creating a ring or slot removes them too (:func:`shm.files.create_shared_file`); this
+    Creating a ring or slot removes them too (:func:`cfsr_live.shm.files.create_shared_file`); this
     pass only exists so that the start can say how many there were."""
-    from shm.files import remove_stale_files, shared_dirs
-    from shm.frameslot import FRAME_PREFIX
-    from shm.ring import RING_PREFIX
+    from cfsr_live.shm.files import remove_stale_files, shared_dirs
+    from cfsr_live.shm.frameslot import FRAME_PREFIX
+    from cfsr_live.shm.ring import RING_PREFIX
 
     dirs = {d for d in shared_dirs() if d.is_dir()}
     return sum(remove_stale_files(d, pre) for d in dirs for pre in (RING_PREFIX, FRAME_PREFIX))
@@ -217,9 +217,9 @@ def run(args: argparse.Namespace) -> int:
     _check_port(settings.host, settings.port)
     _check_data_dir(settings.data_dir)
     say = lambda m: print(f"cfsr serve: {m}", flush=True)  # noqa: E731
-    from service.safefs import FolderLock
-    from service.security import install_log_redaction
-    from service.signals import (
+    from cfsr_live.service.safefs import FolderLock
+    from cfsr_live.service.security import install_log_redaction
+    from cfsr_live.service.signals import (
         Stopped,
         ignore_ending_signals,
         raise_on_ending_signals,
@@ -246,19 +246,19 @@ def run(args: argparse.Namespace) -> int:
 
 def _serve(settings, args: argparse.Namespace, say) -> int:
     """Start the runtime, serve until stopped, stop; the exit status."""
-    from service.signals import ignore_ending_signals
+    from cfsr_live.service.signals import ignore_ending_signals
 
     stale = _remove_stale_segments()
     if stale:
         say(f"removed {stale} shared-memory file(s) left by a server that did not stop cleanly")
     if settings.source.kind == "demo":
-        from service.demo import ensure_demo
+        from cfsr_live.service.demo import ensure_demo
 
         ensure_demo(settings.demo_steps, say=say)
 
-    from service.app import create_app
-    from service.httpproto import HeadTimeoutH11Protocol
-    from service.runtime import Runtime
+    from cfsr_live.service.app import create_app
+    from cfsr_live.service.httpproto import HeadTimeoutH11Protocol
+    from cfsr_live.service.runtime import Runtime
 
     rt = Runtime(settings)
     try:
@@ -291,7 +291,7 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
     """The uvicorn server of ``rt``'s app (every ending signal trapped, request heads timed)."""
     import uvicorn
 
-    from service.signals import trap_ending_signals
+    from cfsr_live.service.signals import trap_ending_signals
 
     if rt.kernels.status().state == "compiling":
         say("first start here: compiling the methods' kernels in the background at low "
@@ -303,7 +303,7 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
 
     class _Server(uvicorn.Server):
         def capture_signals(self):
-            # SIGHUP and SIGQUIT too, and nothing re-raised afterwards (service.signals)
+            # SIGHUP and SIGQUIT too, and nothing re-raised afterwards (cfsr_live.service.signals)
             return trap_ending_signals(self.handle_exit)
 
         async def startup(self, sockets=None):

@@ -7,10 +7,10 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Response
 
-from service.body import short
-from service.config import ConfigChange
-from service.deps import RuntimeDep, require_token
-from service.models import ConfigModel, ConfigUpdate, Limits, MethodInfo
+from cfsr_live.service.body import short
+from cfsr_live.service.config import ConfigChange
+from cfsr_live.service.deps import RuntimeDep, require_token
+from cfsr_live.service.models import ConfigModel, ConfigUpdate, Limits, MethodInfo
 
 router = APIRouter(tags=["config"], dependencies=[Depends(require_token)])
 

@@ -7,7 +7,7 @@ from typing import Literal
 from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel
 
-from service.deps import RuntimeDep, require_token
+from cfsr_live.service.deps import RuntimeDep, require_token
 
 router = APIRouter(tags=["debug"], dependencies=[Depends(require_token)])
 

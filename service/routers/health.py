@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 from fastapi import APIRouter, Request, Response
 
-from service.deps import RuntimeDep
-from service.models import Health
+from cfsr_live.service.deps import RuntimeDep
+from cfsr_live.service.models import Health
 
 router = APIRouter(tags=["health"])
 

@@ -12,10 +12,10 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, WebSocket
 from fastapi.responses import Response, StreamingResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from service.deps import HubDep, require_token, ws_token_ok
-from service.hub import ClientQueue, FrameHub
-from service.render import encode_jpeg, encode_png, render_rgb
-from service.settings import MAX_FPS_RANGE
+from cfsr_live.service.deps import HubDep, require_token, ws_token_ok
+from cfsr_live.service.hub import ClientQueue, FrameHub
+from cfsr_live.service.render import encode_jpeg, encode_png, render_rgb
+from cfsr_live.service.settings import MAX_FPS_RANGE
 
 router = APIRouter(tags=["media"])
 log = logging.getLogger("cfsr.media")
@@ -120,7 +120,8 @@ def _client_fps(value) -> float | None:
 
 @router.websocket("/ws")
 async def ws(websocket: WebSocket) -> None:
-    """Binary frame messages (see ``service.hub``), one per new frame, latest-only per client.
+    """Binary frame messages (see ``cfsr_live.service.hub``), one per new frame, latest-only per
+    client.
 
     The client may send JSON text ``{"max_fps": N}`` to cap its own rate.
     """

@@ -6,9 +6,9 @@ import asyncio
 
 from fastapi import APIRouter, Depends, HTTPException
 
-from service.deps import RuntimeDep, require_token
-from service.models import RecordRequest, RecordStatus
-from service.runtime import ConflictError
+from cfsr_live.service.deps import RuntimeDep, require_token
+from cfsr_live.service.models import RecordRequest, RecordStatus
+from cfsr_live.service.runtime import ConflictError
 
 router = APIRouter(tags=["record"], dependencies=[Depends(require_token)])
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from pydantic import BaseModel, Field
 
-from service.deps import TooManyTries, client_key, token_matches, token_ok
-from service.security import SESSION_COOKIE, SESSION_SECONDS
+from cfsr_live.service.deps import TooManyTries, client_key, token_matches, token_ok
+from cfsr_live.service.security import SESSION_COOKIE, SESSION_SECONDS
 
 router = APIRouter(tags=["session"])
 

@@ -7,9 +7,9 @@ import asyncio
 
 from fastapi import APIRouter, Depends, HTTPException
 
-from driver.source import SourceError
-from service.deps import RuntimeDep, require_token
-from service.models import (
+from cfsr_live.driver.source import SourceError
+from cfsr_live.service.deps import RuntimeDep, require_token
+from cfsr_live.service.models import (
     ReplayState,
     ReplayUpdate,
     SeekRequest,
@@ -18,7 +18,7 @@ from service.models import (
     SourceStatus,
     StepRequest,
 )
-from service.runtime import ConflictError, Runtime
+from cfsr_live.service.runtime import ConflictError, Runtime
 
 # (NaN/Infinity in a body is refused before any route: service.body)
 router = APIRouter(tags=["sources"], dependencies=[Depends(require_token)])

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request, Response
 
-from service.deps import HubDep, RuntimeDep, require_token
-from service.models import StatusModel
+from cfsr_live.service.deps import HubDep, RuntimeDep, require_token
+from cfsr_live.service.models import StatusModel
 
 router = APIRouter(tags=["status"], dependencies=[Depends(require_token)])
 

@@ -40,8 +40,8 @@ def main() -> int:
     a = ap.parse_args(argv[:cut])
 
     from cfsr.datfile import read_dat
-    from replay.camera_model import CameraModel
-    from replay.umockdev_camera import EmulatedCamera
+    from cfsr_live.replay.camera_model import CameraModel
+    from cfsr_live.replay.umockdev_camera import EmulatedCamera
 
     model = CameraModel(read_dat(a.dat), paced=a.paced, rate_hz=a.rate)
     cam = EmulatedCamera(model).start()

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from livehelpers import read_blocks, wait_until
 
-from replay import umockdev_camera as U
+from cfsr_live.replay import umockdev_camera as U
 
 ok, why = U.available()
 if not ok:
@@ -28,13 +28,13 @@ import usb.core  # noqa: E402
 import usb.util  # noqa: E402
 
 from cfsr.datfile import read_dat, write_dat  # noqa: E402
-from driver import protocol as P  # noqa: E402
-from driver.acquisition import Acquisition  # noqa: E402
-from driver.source import BlockFlags, CameraControl, ReplayControl, SourceState  # noqa: E402
-from driver.usb import UsbCameraSource  # noqa: E402
-from replay.camera_model import CameraModel  # noqa: E402
-from replay.pattern import pattern_recording  # noqa: E402
-from shm.ring import SpikeRing  # noqa: E402
+from cfsr_live.driver import protocol as P  # noqa: E402
+from cfsr_live.driver.acquisition import Acquisition  # noqa: E402
+from cfsr_live.driver.source import BlockFlags, CameraControl, ReplayControl, SourceState  # noqa: E402
+from cfsr_live.driver.usb import UsbCameraSource  # noqa: E402
+from cfsr_live.replay.camera_model import CameraModel  # noqa: E402
+from cfsr_live.replay.pattern import pattern_recording  # noqa: E402
+from cfsr_live.shm.ring import SpikeRing  # noqa: E402
 
 FB = 12_500
 FPB = 256
