@@ -1,5 +1,9 @@
 """Which sources the service can open, and opening them.
 
+The listing is made by the registered source kinds (:mod:`cfsr_live.service.sources`): each
+kind lists its own entries, resolves its own ids and opens its own sources; this module holds
+what they share (the entry type, the data folder's safe scan) and asks every kind in turn.
+
 Recordings come only from the configured data folder: the listing is made by scanning that
 folder (symlinks that leave it are ignored), and a client selects an entry by its *id* from the
 listing. No path sent by a client is ever opened.
@@ -25,23 +29,24 @@ from pathlib import Path
 from typing import Any
 
 from cfsr_live.driver.source import Source
+from cfsr_live.service import sources
 from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, Settings, SourceSpec
 
-__all__ = ["SourceCatalog", "CatalogEntry", "SIM_SCENES"]
+__all__ = ["SourceCatalog", "CatalogEntry"]
 
 log = logging.getLogger("cfsr.catalog")
 
 SUFFIXES = (".dat", ".npz")
 MAX_DEPTH = 4
 MAX_ENTRIES = 500
-#: the synthetic scene that needs no simulator; cfsr.simulate's scenes are added when present
-SIM_SCENES = ("pattern",)
 
 
 @dataclass
 class CatalogEntry:
     id: str
-    kind: str  # demo | file | replay | usb | sim
+    #: what the viewer's menu shows it as (a source kind's name, or ``file`` for a recording
+    #: of the data folder)
+    kind: str
     name: str
     path: Path | None = None
     frames: int | None = None
@@ -78,26 +83,21 @@ def _os_problem(exc: OSError) -> str:
     return f"cannot be read ({exc.strerror or exc})"
 
 
-def _simulator_scenes() -> list[str]:
-    try:
-        from cfsr.simulate import SCENES
-    except ImportError:
-        return []
-    return list(SCENES)
-
-
 class SourceCatalog:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.data_dir = settings.data_dir.resolve()
         self.extra: dict[str, CatalogEntry] = {}  # sources named on the command line
+        self._extra_kind: dict[str, sources.SourceKind] = {}
         self._reported: set[tuple[str, str]] = set()  # (path, problem) already logged
 
     def add_cli_source(self, spec: SourceSpec) -> None:
-        if spec.kind == "replay" and spec.path is not None:
-            e = self._describe_file(spec.path, f"replay:{spec.path.name}", "replay")
-            if e is not None:
-                self.extra[e.id] = e
+        """List the source the command line opened, when its kind would not list it."""
+        kind = sources.get(spec.kind)
+        e = kind.cli_entry(self, spec)
+        if e is not None:
+            self.extra[e.id] = e
+            self._extra_kind[e.id] = kind
 
     # -- listing ----------------------------------------------------------------------------
     def _unusable(self, e: CatalogEntry, problem: str) -> CatalogEntry:
@@ -117,7 +117,7 @@ class SourceCatalog:
             log.info("data folder: skipping %s: %s", e.path, problem)
         return e
 
-    def _describe_file(self, path: Path, id_: str, kind: str) -> CatalogEntry | None:
+    def describe_file(self, path: Path, id_: str, kind: str) -> CatalogEntry | None:
         """Describe ``path`` from ``stat`` and its sidecar; None if it vanished meanwhile."""
         from cfsr.datfile import SpikeFileError, file_kind, read_sidecar
         from cfsr.layout import STEP_RATE_HZ, Layout
@@ -171,13 +171,13 @@ class SourceCatalog:
             return self._unusable(e, _os_problem(exc))
         if real != self.data_dir and self.data_dir not in real.parents:
             return None
-        d = self._describe_file(real, e.id, "file")
+        d = self.describe_file(real, e.id, "file")
         if d is None:
             return self._unusable(e, "removed while the folder was read")
         d.name = rel
         return d
 
-    def _scan_folder(self) -> list[CatalogEntry]:
+    def scan_folder(self) -> list[CatalogEntry]:
         """The data folder's recordings, depth first in name order, at most
         :data:`MAX_ENTRIES` (then a last entry saying the listing stops there)."""
         root = self.data_dir
@@ -233,57 +233,30 @@ class SourceCatalog:
         return out
 
     def scan(self) -> dict[str, CatalogEntry]:
+        """The whole listing, id -> entry: each kind's entries in the kinds' order, the
+        sources named on the command line first among their kind's."""
         out: dict[str, CatalogEntry] = {}
-        from cfsr_live.service.demo import demo_path
-
-        dp = demo_path(self.settings.demo_steps)
-        demo = CatalogEntry(id="demo", kind="demo", name="built-in demo (simulated disk)")
-        if dp.exists():
-            demo = self._describe_file(dp, "demo", "demo") or demo
-            demo.name = "built-in demo (simulated disk)"
-        else:
-            demo.note = "simulated on first use"
-        out["demo"] = demo
-        out.update(self.extra)
-        for e in self._scan_folder():
-            out[e.id] = e
-        out["usb"] = self._usb_entry()
-        for scene in [*SIM_SCENES, *_simulator_scenes()]:
-            out[f"sim:{scene}"] = CatalogEntry(
-                id=f"sim:{scene}", kind="sim", name=f"live simulator: {scene}"
-            )
+        for kind in sources.kinds():
+            for id_, e in self.extra.items():
+                if self._extra_kind[id_] is kind:
+                    out[id_] = e
+            for e in kind.entries(self):
+                out[e.id] = e
         return out
 
-    @staticmethod
-    def _usb_entry() -> CatalogEntry:
-        import importlib.util
-
-        cam = CatalogEntry(id="usb", kind="usb", name="USB spike camera")
-        if importlib.util.find_spec("usb") is None:
-            cam.note = "pyusb is not installed"
-        return cam
-
     # -- opening ----------------------------------------------------------------------------
-    def _entry(self, source_id: str) -> CatalogEntry:
-        """The listing's entry ``source_id``, found without scanning the whole folder (a
-        switch to the simulator never reads the data folder); KeyError if there is none."""
-        if source_id == "demo" or source_id in self.extra:
-            entry = self.scan().get(source_id)
-        elif source_id == "usb":
-            entry = self._usb_entry()
-        elif source_id.startswith("sim:"):
-            scene = source_id[4:]
-            known = scene in SIM_SCENES or scene in _simulator_scenes()
-            entry = CatalogEntry(id=source_id, kind="sim", name=scene) if known else None
-        elif source_id.startswith("file:"):
-            entry = self._file_entry(source_id[5:])
-        else:
-            entry = None
-        if entry is None:
-            raise KeyError(source_id)
-        return entry
+    def _entry(self, source_id: str) -> tuple[sources.SourceKind, CatalogEntry]:
+        """The listing's entry ``source_id`` and its kind, found without listing everything
+        (a switch to the simulator never reads the data folder); KeyError if there is none."""
+        if source_id in self.extra:
+            return self._extra_kind[source_id], self.extra[source_id]
+        for kind in sources.kinds():
+            e = kind.entry(self, source_id)
+            if e is not None:
+                return kind, e
+        raise KeyError(source_id)
 
-    def _file_entry(self, rel: str) -> CatalogEntry | None:
+    def file_entry(self, rel: str) -> CatalogEntry | None:
         """The entry of recording ``rel`` (as the listing names it), or None when the listing
         would not hold it: a hidden or non-recording name, too deep, or below a link."""
         parts = rel.split("/")
@@ -302,58 +275,14 @@ class SourceCatalog:
 
     def spec_for(self, source_id: str) -> SourceSpec:
         """Resolve a listing id to what to open; KeyError if the id is not listed."""
-        e = self._entry(source_id)
+        kind, e = self._entry(source_id)
         if not e.usable:
             raise ValueError(f"{e.name}: {e.note}")
-        if e.kind == "demo":
-            return SourceSpec(kind="demo")
-        if e.kind in ("file", "replay"):
-            return SourceSpec(kind="replay", path=e.path)
-        if e.kind == "usb":
-            cur = self.settings.source
-            return SourceSpec(kind="usb", vid=cur.vid, pid=cur.pid)
-        if e.kind == "sim":
-            return SourceSpec(kind="sim", scene=source_id.split(":", 1)[1])
-        raise KeyError(source_id)
+        return kind.spec_for(self, e)
 
     def open(self, spec: SourceSpec) -> Source:
-        s = self.settings
-        if spec.kind == "demo":
-            from cfsr_live.service.demo import ensure_demo
-
-            path = ensure_demo(s.demo_steps, say=lambda m: log.warning("%s", m))
-            return self._replay(path, name="demo")
-        if spec.kind == "replay":
-            if spec.path is None:
-                raise ValueError("replay source needs a file")
-            return self._replay(spec.path)
-        if spec.kind == "usb":
-            from cfsr_live.driver.usb import UsbCameraSource
-
-            kw = {}
-            if spec.vid is not None:
-                kw["vid"] = spec.vid
-            if spec.pid is not None:
-                kw["pid"] = spec.pid
-            return UsbCameraSource(**kw)
-        if spec.kind == "sim":
-            from cfsr_live.replay.simulator import SimulatorSource
-            from cfsr_live.service.settings import cache_dir
-
-            return SimulatorSource(
-                spec.scene or "pattern", speed=s.speed, cache_dir=cache_dir() / "sim"
-            )
-        raise ValueError(f"unknown source kind {spec.kind!r}")
-
-    def _replay(self, path: Path, name: str | None = None) -> Source:
-        from cfsr_live.replay.device import ReplayDevice
-
-        s = self.settings
-        return ReplayDevice(
-            path,
-            speed=s.speed,
-            loop=s.loop,
-            mode=s.replay_mode,
-            block_frames=s.block_frames,
-            name=name,
-        )
+        """A new (not yet opened) source for ``spec``, made by its kind."""
+        kind = sources.get(spec.kind)
+        say = lambda m: log.warning("%s", m)  # noqa: E731 - the demo's first simulation
+        src = kind.open(spec, sources.OpenOptions.from_settings(self.settings, say=say))
+        return sources.opened(kind, src)

@@ -6,6 +6,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 #: frames per second the worker (or one client) may ask for: below 0.1 a viewer would wait
 #: minutes for a frame
@@ -78,22 +79,21 @@ def is_loopback(host: str) -> bool:
 
 @dataclass
 class SourceSpec:
-    """What to open: ``demo``, ``replay`` (``path``), ``usb`` (``vid``/``pid``) or ``sim``
-    (``scene``)."""
+    """What to open: a source kind's name (``demo``, ``replay``, ``usb``, ``sim``, or one a
+    package registers: :mod:`cfsr_live.service.sources`), the file it reads (``path``, for
+    kinds that read one) and the kind's own ``options`` (the USB camera's ``vid``/``pid``, the
+    simulator's ``scene``). Only the kind reads ``options``."""
 
     kind: str = "demo"
     path: Path | None = None
-    vid: int | None = None
-    pid: int | None = None
-    scene: str | None = None
+    options: dict[str, Any] = field(default_factory=dict)
 
     @property
     def id(self) -> str:
-        if self.kind == "replay" and self.path is not None:
-            return f"replay:{self.path.name}"
-        if self.kind == "sim":
-            return f"sim:{self.scene or 'pattern'}"
-        return self.kind
+        """The listing id of this source (``GET /api/sources``), as its kind names it."""
+        from cfsr_live.service.sources import get
+
+        return get(self.kind).spec_id(self)
 
 
 @dataclass

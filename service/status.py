@@ -117,7 +117,8 @@ class SourceReport(BaseModel):
     """The source's report: its ``status`` section and the frames it lost (for ``drops``)."""
 
     status: SourceStatus
-    usb_lost_frames: int = Field(0, description="frames lost on the USB link (a camera only)")
+    usb_lost_frames: int = Field(
+        0, description="frames lost on the camera's link (the counter its source kind names)")
     replay_behind_frames: int = Field(0, description="frames a paced replay skipped")
 
 
@@ -159,10 +160,15 @@ def source_report(
         replay=None if ctl is None else ReplayState.model_validate(ctl.state()),
         last_error=src.last_error or (acq.last_error if acq else None),
     )
+    # which of its counters are losses is the kind's to say (a camera package names its own)
+    from cfsr_live.service.sources import SourceKind, kind_of
+
+    kind = kind_of(src) or SourceKind()
+    link, paced = kind.link_loss_counter, kind.pacing_loss_counter
     return SourceReport(
         status=status,
-        usb_lost_frames=int(own.get("lost_frames", 0)) if src.info.kind == "usb" else 0,
-        replay_behind_frames=int(own.get("replay_behind_frames", 0)),
+        usb_lost_frames=int(own.get(link, 0)) if link else 0,
+        replay_behind_frames=int(own.get(paced, 0)) if paced else 0,
     )
 
 

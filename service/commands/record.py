@@ -13,18 +13,15 @@ from pathlib import Path
 HELP = "record spikes from a source (USB camera, replay, simulator) to .dat + sidecar"
 
 
-def _int_auto(text: str) -> int:
-    return int(text, 0)
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from cfsr_live.service import sources
+
+    # each kind of source adds its own flags (cfsr_live.service.sources); one must be given
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--usb", action="store_true", help="record from the USB spike camera")
-    src.add_argument("--replay", metavar="FILE", type=Path,
-                     help="re-record (a range of) a .dat, as fast as it can be written")
-    src.add_argument("--sim", metavar="SCENE", help="record the live simulator (pattern, disk..)")
-    p.add_argument("--vid", type=_int_auto, help="USB vendor id (with --usb)")
-    p.add_argument("--pid", type=_int_auto, help="USB product id (with --usb)")
+    for kind in sources.kinds():
+        kind.add_select_argument(src, "record")
+    for kind in sources.kinds():
+        kind.add_arguments(p, "record")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .dat")
     lim = p.add_mutually_exclusive_group(required=True)
     lim.add_argument("--frames", type=int, help="frames (steps) to record")
@@ -65,23 +62,16 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.output
     if os.path.lexists(out) and not args.force:
         raise ValueError(f"{out} exists (use --force to overwrite)")
-    if args.usb:
-        from cfsr.cli._extras import require_extra
+    from cfsr_live.service import sources
 
-        require_extra("live", ["usb"])
-        from cfsr_live.driver.usb import UsbCameraSource
-
-        kw = {k: v for k, v in (("vid", args.vid), ("pid", args.pid)) if v is not None}
-        src = UsbCameraSource(**kw)
-    elif args.replay is not None:
-        from cfsr_live.replay.device import ReplayDevice
-
-        # a file or a simulation is converted as fast as it can be written (nothing skipped)
-        src = ReplayDevice(args.replay, mode="fast", loop=False)
-    else:
-        from cfsr_live.replay.simulator import SimulatorSource
-
-        src = SimulatorSource(args.sim, mode="fast")
+    picked = [(k, s) for k in sources.kinds() if (s := k.spec_from_args(args)) is not None]
+    if not picked:  # a flag given an empty value (--sim '')
+        raise ValueError("no source given (see 'cfsr record --help')")
+    kind, spec = picked[0]
+    kind.check_installed()
+    # a file or a simulation is converted as fast as it can be written (nothing skipped), a
+    # recording once (no loop)
+    src = kind.open(spec, sources.OpenOptions(loop=False, unpaced=True))
     with src:
         info = src.info
         want = args.frames if args.frames is not None else int(round(args.seconds * info.rate_hz))

@@ -17,10 +17,8 @@ import tempfile
 from pathlib import Path
 
 HELP = "start the live service and browser viewer (needs cfsr[live])"
-
-
-def _int_auto(text: str) -> int:
-    return int(text, 0)
+#: the source kind opened when the command line names none
+DEFAULT_SOURCE = "demo"
 
 
 def _port(text: str) -> int:
@@ -51,17 +49,18 @@ def _bounded(lo: float, hi: float, what: str):
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from cfsr.cli._common import add_pool_arguments
     from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
+    from cfsr_live.service import sources
     from cfsr_live.service.settings import MAX_FPS_RANGE, RING_SECONDS_RANGE
 
     fps_lo, fps_hi = MAX_FPS_RANGE
     ring_lo, ring_hi = RING_SECONDS_RANGE
 
+    # each kind of source adds its own flags (cfsr_live.service.sources); none: the demo
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--replay", metavar="FILE", type=Path, help="replay a .dat recording")
-    src.add_argument("--usb", action="store_true", help="use the USB spike camera")
-    src.add_argument("--sim", metavar="SCENE", help="live simulator source (pattern, disk, ...)")
-    p.add_argument("--vid", type=_int_auto, help="USB vendor id (with --usb), e.g. 0x1d6b")
-    p.add_argument("--pid", type=_int_auto, help="USB product id (with --usb)")
+    for kind in sources.kinds():
+        kind.add_select_argument(src, "serve")
+    for kind in sources.kinds():
+        kind.add_arguments(p, "serve")
     p.add_argument("--host", default="127.0.0.1",
                    help="bind address (default 127.0.0.1; anything else needs --token)")
     p.add_argument("--port", type=_port, default=8000, help="port, 1..65535 (default 8000)")
@@ -104,20 +103,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def build_settings(args: argparse.Namespace):
+    from cfsr_live.service import sources
     from cfsr_live.service.settings import Settings, SourceSpec, default_data_dir
 
-    if (args.vid is not None or args.pid is not None) and not args.usb:
-        raise ValueError("--vid/--pid only apply with --usb")
-    if args.replay is not None:
-        if not args.replay.is_file():
-            raise ValueError(f"{args.replay}: no such recording")
-        spec = SourceSpec(kind="replay", path=args.replay.resolve())
-    elif args.usb:
-        spec = SourceSpec(kind="usb", vid=args.vid, pid=args.pid)
-    elif args.sim:
-        spec = SourceSpec(kind="sim", scene=args.sim)
-    else:
-        spec = SourceSpec(kind="demo")
+    # every kind checks its own flags (the group lets at most one pick a source)
+    picked = [s for k in sources.kinds() if (s := k.spec_from_args(args)) is not None]
+    spec = picked[0] if picked else SourceSpec(kind=DEFAULT_SOURCE)
     return Settings(
         host=args.host,
         port=args.port,
@@ -190,8 +181,8 @@ def _remove_stale_segments() -> int:
 
     Creating a ring or slot removes them too (:func:`cfsr_live.shm.files.create_shared_file`); this
     pass only exists so that the start can say how many there were."""
+    from cfsr_live.service.frameslot import FRAME_PREFIX
     from cfsr_live.shm.files import remove_stale_files, shared_dirs
-    from cfsr_live.shm.frameslot import FRAME_PREFIX
     from cfsr_live.shm.ring import RING_PREFIX
 
     dirs = {d for d in shared_dirs() if d.is_dir()}
@@ -251,10 +242,11 @@ def _serve(settings, args: argparse.Namespace, say) -> int:
     stale = _remove_stale_segments()
     if stale:
         say(f"removed {stale} shared-memory file(s) left by a server that did not stop cleanly")
-    if settings.source.kind == "demo":
-        from cfsr_live.service.demo import ensure_demo
+    from cfsr_live.service import sources
 
-        ensure_demo(settings.demo_steps, say=say)
+    # slow first-use work (the demo's simulation) is said here, before the service starts
+    sources.get(settings.source.kind).prepare(
+        settings.source, sources.OpenOptions.from_settings(settings, say=say))
 
     from cfsr_live.service.app import create_app
     from cfsr_live.service.httpproto import HeadTimeoutH11Protocol
