@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import threading
 import weakref
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -177,6 +178,7 @@ class SourceKind:
 
 _KINDS: dict[str, SourceKind] = {}
 _loaded = False
+_LOAD_LOCK = threading.Lock()
 #: the kind that made each open source (for its loss counters); weak: a closed, dropped
 #: source leaves no entry
 _OPENED: weakref.WeakKeyDictionary[Any, SourceKind] = weakref.WeakKeyDictionary()
@@ -210,7 +212,13 @@ def _load() -> None:
     global _loaded
     if _loaded:
         return
-    _loaded = True
+    with _LOAD_LOCK:  # the API's worker threads may ask first: none sees a half-filled table
+        if not _loaded:
+            _load_entry_points()
+            _loaded = True
+
+
+def _load_entry_points() -> None:
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         if ep.name in _KINDS:
             continue  # one distribution seen twice (an editable install beside a wheel)
@@ -245,7 +253,10 @@ def get(name: str) -> SourceKind:
 
 def opened(kind: SourceKind, src: Source) -> Source:
     """Note that ``kind`` made ``src`` (read back by :func:`kind_of`); returns ``src``."""
-    _OPENED[src] = kind
+    try:
+        _OPENED[src] = kind
+    except TypeError:  # an unhashable source: its losses are read by the default names
+        pass
     return src
 
 
