@@ -922,26 +922,29 @@ def fine_stage(
     step of t (PatchMatch's draws are keyed by it). ``memo`` (a dict kept for one stream) carries
     work from the previous output to this one when :func:`carry_groups`' rule joins them (the
     same span of ``carry_span`` steps, at most ``carry_gap`` after it): its CSR history frames
-    stand in for this output's within half a stride (:func:`_carried_ends`). Without it, or
-    for the first output of a group, the frame is the isolated one.
+    stand in for this output's within half a stride (:func:`_carried_ends`), and the
+    PatchMatch frames of the group's last output at the same steps are taken as computed
+    (:func:`cfsr.methods.pmframes.pm_frames`' bank: the same numbers). Without it, or for the
+    first output of a group, the frame is the isolated one.
     """
     p = effective_params(p)
     src = window if isinstance(window, PackedWindow) else PackedWindow.from_frames(window)
     n, h, w = src.n, src.h, src.w
-    carried = _carry_in(memo, int(seed), center, p)
+    carried, bank = _carry_in(memo, int(seed), center, p)
     adaptive = bool(p.get("adaptive", True))
     # 0. static gate: counts unchanged over the last two spans -> the TFP, nothing else to do
     pa, pb = tfp_span(center, n, static_length(p), p["tfp_mode"])
     gate = static_gate(src, pb, p["static_window"], p["static_tol"]) if adaptive else None
     if gate is not None:
         none = np.zeros((h, w), bool)
-        _carry_out(memo, int(seed), center, p, None)
+        _carry_out(memo, int(seed), center, p, None, bank)
         return _gated_rate(src, gate, pa, pb, center, p), {"coarse": none, "fine": none.copy()}
     active, slow_cand = _tile_gates(src, pb, adaptive, p)
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
     hs = _history(src, center, p, active, carried)
     rates, coarse, tfp = hs["rates"], hs["coarse"], hs["tfp"]
-    _carry_out(memo, int(seed), center, p, dict(zip(hs["ends"].tolist(), rates, strict=True)))
+    frames = dict(zip(hs["ends"].tolist(), rates, strict=True))
+    _carry_out(memo, int(seed), center, p, frames, bank)
     tfi_at_t = hs["tfi"]
     sharp = None  # Eq. 9's f under mog_sides = both (_Sharp)
     noise = None  # the frame's temporal-noise level (steady rules; the slow-motion stage's gate)
@@ -980,7 +983,7 @@ def fine_stage(
     # ~left only: the still pixels left out (and, always-full, the pixels outside the region)
     # are matched but not averaged
     used = region if left is None else region & ~left
-    refined, (y0, x0), domain = _refine(src, center, seed, region, used, adaptive, p)
+    refined, (y0, x0), domain = _refine(src, center, seed, region, used, adaptive, p, bank)
     if not region.any():  # always-full pipeline on a static window: the same TFP output
         rate = np.clip(tfp, 0.0, 1.0).astype(np.float32)
         return slow_fuse(src, center, rate, None, p, slow_cand, noise), masks
@@ -1130,11 +1133,13 @@ def _refine(
     used: np.ndarray,
     adaptive: bool,
     p: Mapping[str, Any],
+    bank: dict[str, Any] | None = None,
 ) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
     """Step 5: the TFI at t refined by PatchMatch (Eq. 3 + the paper's patch averaging) on
     ``region`` (adaptive: TFI frames and guides only on the tiles within a patch's reach of
     it), averaged on ``used``. Returns ``(refined, (y0, x0), domain)``: the refined rates of
-    the crop at ``(y0, x0)`` and the crop's pixels they hold."""
+    the crop at ``(y0, x0)`` and the crop's pixels they hold. ``bank``: the PatchMatch frames
+    carried within a group of outputs (:func:`cfsr.methods.pmframes.pm_frames`)."""
     h, w, n = src.h, src.w, src.n
     if adaptive:
         # a match reaching beyond the computed tiles reads NaN and is never taken (pm_frames);
@@ -1156,7 +1161,14 @@ def _refine(
     # the guides go straight into the buffer the search reads (no padded copy of 33 frames)
     padded, view = padded_guides(len(tcs), int(y1 - y0), int(x1 - x0), int(p["pm_patch"]))
     raw, guides = pm_frames(
-        src, tcs, (int(y0), int(y1), int(x0), int(x1)), p, tiles, guide_out=view
+        src,
+        tcs,
+        (int(y0), int(y1), int(x0), int(x1)),
+        p,
+        tiles,
+        guide_out=view,
+        bank=bank,
+        shift=seed - center,
     )
     finish_padding(padded, int(p["pm_patch"]))
     refined = patchmatch_fuse(
@@ -1185,6 +1197,9 @@ class _Carry(NamedTuple):
     t: int  #: absolute step of the output
     key: tuple  #: its effective parameters: another set carries nothing
     frames: dict[int, np.ndarray]  #: absolute last step -> CSR history frame (H, W) float32
+    #: the PatchMatch frames of the group's last output that ran PatchMatch, by absolute
+    #: step (:func:`cfsr.methods.pmframes.pm_frames`)
+    bank: dict[str, Any]
 
 
 def _carry_key(p: Mapping[str, Any]) -> tuple:
@@ -1193,14 +1208,18 @@ def _carry_key(p: Mapping[str, Any]) -> tuple:
 
 def _carry_in(
     memo: MutableMapping[str, Any] | None, t: int, center: int, p: Mapping[str, Any]
-) -> dict[int, np.ndarray] | None:
-    """The previous output's history frames (window indices -> frame) when output step ``t``
-    continues from it (:func:`_continues`), else None."""
-    old = None if memo is None else memo.get("cfsr")
+) -> tuple[dict[int, np.ndarray] | None, dict[str, Any] | None]:
+    """The previous output's history frames (window indices -> frame; None: none) when output
+    step ``t`` continues from it (:func:`_continues`), and the group's PatchMatch frames (an
+    empty bank for the first output of a group; None without a memo or with
+    ``carry_span = 0``)."""
+    if memo is None or int(p.get("carry_span", 0)) <= 0:
+        return None, None
+    old = memo.get("cfsr")
     if not isinstance(old, _Carry) or not _continues(old.t, t, p) or old.key != _carry_key(p):
-        return None
+        return None, {}
     shift = t - center  # absolute step of window index 0
-    return {a - shift: f for a, f in old.frames.items()}
+    return {a - shift: f for a, f in old.frames.items()}, old.bank
 
 
 def _carry_out(
@@ -1209,13 +1228,15 @@ def _carry_out(
     center: int,
     p: Mapping[str, Any],
     frames: Mapping[int, np.ndarray] | None,
+    bank: dict[str, Any] | None = None,
 ) -> None:
-    """Leave this output's history frames (window index -> frame; None: none) in ``memo``."""
+    """Leave this output's history frames (window index -> frame; None: none) and the
+    group's PatchMatch frames (``bank``, which :func:`_refine` fills in place) in ``memo``."""
     if memo is None or int(p.get("carry_span", 0)) <= 0:
         return
     shift = t - center
     kept = {} if frames is None else {e + shift: f for e, f in frames.items()}
-    memo["cfsr"] = _Carry(t, _carry_key(p), kept)
+    memo["cfsr"] = _Carry(t, _carry_key(p), kept, {} if bank is None else bank)
 
 
 class _Sharp(NamedTuple):

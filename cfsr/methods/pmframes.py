@@ -273,6 +273,8 @@ def pm_frames(
     p: Mapping[str, Any],
     tiles: np.ndarray | None = None,
     guide_out: np.ndarray | None = None,
+    bank: dict[str, Any] | None = None,
+    shift: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Raw TFI rates and matching guides at ``centers`` on ``box = (y0, y1, x0, x1)``.
 
@@ -288,44 +290,48 @@ def pm_frames(
     ``(len(centers), y1 - y0, x1 - x0)``, may be a strided view such as the images of
     :func:`cfsr.methods.patchmatch.padded_guides`): the guides are written there and it is
     returned as the guides.
+
+    ``bank`` (a dict kept from one call to the next: CFSR's dense output, whose outputs put
+    their frames on one grid of steps): the frames of the previous call at the same absolute
+    steps (``shift`` + window index) are taken from it when that call computed every tile
+    this one computes (the same numbers: a pixel's TFI and TFA depend on its own spikes
+    only), only the others are computed, and the bank is left holding this call's frames
+    (before the blur, which runs on every frame as without a bank).
     """
-    n = src.n
     y0, y1, x0, x1 = box
     if tiles is None:
         tiles = np.ones((-(-src.h // TILE), -(-src.w // TILE)), bool)
-    # tile rows of the box, aligned on the crop's first row
-    sub = np.zeros((-(-(y1 - y0) // TILE), tiles.shape[1]), bool)
-    for i in range(sub.shape[0]):
-        ya, yb = y0 + i * TILE, min(y1, y0 + (i + 1) * TILE)
-        sub[i] = tiles[ya // TILE : (yb - 1) // TILE + 1].any(axis=0)
-    runs_at, runs = _runs(sub, TILE, x0, x1)
     cs = np.asarray(centers, np.int64)
-    order = np.argsort(cs, kind="stable")
-    m = int(p["max_isi"])
-    lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
     thr = int(p["pm_guide"])
-    # the crop rows with work
-    rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
     raw = np.empty((cs.size, y1 - y0, x1 - x0), np.float32)
     tfa = np.empty(raw.shape if thr > 0 else (1, 1, 1), np.float32)
-    _pm_kernel(
-        _Span(src.packed, src.geo, lo, hi),
-        _Centers(cs[order], order, m, thr),
-        _Region(y0, x0, TILE, rows, runs_at, runs),
-        raw,
-        tfa,
-    )
-    idle = np.ones(y1 - y0, bool)
-    idle[rows] = False
-    raw[:, idle] = np.nan
-    if thr > 0:
-        tfa[:, idle] = np.nan
+    todo = np.arange(cs.size)
+    if bank and "raw" in bank:
+        taken, missing = _from_bank(
+            bank, cs + shift, box, tiles, raw, tfa, thr > 0, (src.h, src.w),
+            (shift, shift + src.n, int(p["max_isi"])),
+        )
+        todo = np.flatnonzero(~taken)
+        if taken.any() and missing.any():  # the taken frames' tiles the bank lacks
+            _merge(src, cs, np.flatnonzero(taken), box, p, missing, raw, tfa)
+    if todo.size == cs.size:
+        _computed(src, cs, box, p, tiles, raw, tfa)
+    elif todo.size:
+        r = np.empty((todo.size,) + raw.shape[1:], np.float32)
+        f = np.empty(r.shape if thr > 0 else (1, 1, 1), np.float32)
+        _computed(src, cs[todo], box, p, tiles, r, f)
+        raw[todo] = r
+        if thr > 0:
+            tfa[todo] = f
+    if bank is not None:
+        bank.update(box=tuple(int(v) for v in box), tiles=tiles.copy(), times=cs + shift,
+                    raw=raw, tfa=tfa if thr > 0 else None, window=(shift, shift + src.n))
     g = raw if thr <= 0 else tfa
     if p["pm_sigma"] <= 0:
         if guide_out is not None:
             np.copyto(guide_out, g)
             return raw, guide_out
-        return raw, g.copy() if thr <= 0 else g
+        return raw, g.copy() if thr <= 0 or bank is not None else g
     import cv2
 
     out = np.empty_like(g) if guide_out is None else guide_out
@@ -343,6 +349,136 @@ def pm_frames(
     for j in jobs:
         j.result()
     return raw, out
+
+
+def _computed_mask(
+    box: tuple[int, int, int, int], tiles: np.ndarray
+) -> np.ndarray:
+    """The crop pixels :func:`pm_frames` computes (the others hold NaN): the columns of the
+    marked tiles of each tile row, rows aligned on the crop's first row."""
+    y0, y1, x0, x1 = box
+    sub = _tile_rows(box, tiles)
+    cols = np.repeat(sub, TILE, axis=1)[:, x0:x1]
+    return np.repeat(cols, TILE, axis=0)[: y1 - y0]
+
+
+def _tile_rows(box: tuple[int, int, int, int], tiles: np.ndarray) -> np.ndarray:
+    """The tiles of each tile row of the box, aligned on the crop's first row."""
+    y0, y1 = box[0], box[1]
+    sub = np.zeros((-(-(y1 - y0) // TILE), tiles.shape[1]), bool)
+    for i in range(sub.shape[0]):
+        ya, yb = y0 + i * TILE, min(y1, y0 + (i + 1) * TILE)
+        sub[i] = tiles[ya // TILE : (yb - 1) // TILE + 1].any(axis=0)
+    return sub
+
+
+def _from_bank(
+    bank: dict[str, Any],
+    times: np.ndarray,
+    box: tuple[int, int, int, int],
+    tiles: np.ndarray,
+    raw: np.ndarray,
+    tfa: np.ndarray,
+    guided: bool,
+    size: tuple[int, int],
+    window: tuple[int, int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fill ``raw`` (and ``tfa`` when ``guided``) with the bank's frames at ``times``
+    (absolute steps) where it computed them, NaN elsewhere: ``(taken, missing)``, which
+    frames it filled and the tiles of ``tiles`` the bank lacks (their pixels still to
+    compute in the taken frames). ``window``: this call's window ``(lo, hi)`` (absolute
+    steps) and ``max_isi``: a frame is taken only where both windows clip its search range
+    alike (Eq. 3's spikes within ``max_isi`` steps, inside the window)."""
+    by0, by1, bx0, bx1 = bank["box"]
+    y0, y1, x0, x1 = box
+    h, w = size
+    # the bank's tiles that lie whole inside its box (tiles end at the frame's edge)
+    ends_y = np.minimum(h, (np.arange(tiles.shape[0]) + 1) * TILE)
+    ends_x = np.minimum(w, (np.arange(tiles.shape[1]) + 1) * TILE)
+    in_y = (np.arange(tiles.shape[0]) * TILE >= by0) & (ends_y <= by1)
+    in_x = (np.arange(tiles.shape[1]) * TILE >= bx0) & (ends_x <= bx1)
+    cov = bank["tiles"] & in_y[:, None] & in_x[None, :]
+    missing = tiles & ~cov
+    taken = np.zeros(times.size, bool)
+    at = {int(t): k for k, t in enumerate(bank["times"].tolist())}
+    if not (tiles & cov).any():
+        return taken, missing
+    keep = _computed_mask(box, tiles & cov)
+    # the crop rows and columns both boxes hold
+    a, b, c, d = max(y0, by0), min(y1, by1), max(x0, bx0), min(x1, bx1)
+    here = (slice(a - y0, b - y0), slice(c - x0, d - x0))
+    there = (slice(a - by0, b - by0), slice(c - bx0, d - bx0))
+    nan = np.float32(np.nan)
+    lo, hi, m = window
+    b_lo, b_hi = bank["window"]
+    for i, t in enumerate(times.tolist()):
+        k = at.get(int(t))
+        if k is None or max(lo, t - m) != max(b_lo, t - m) or min(hi, t + m + 1) != min(
+            b_hi, t + m + 1
+        ):
+            continue
+        pairs = ((raw, bank["raw"]), (tfa, bank["tfa"])) if guided else ((raw, bank["raw"]),)
+        for out, src in pairs:
+            out[i] = nan
+            out[i][here] = np.where(keep[here], src[k][there], nan)
+        taken[i] = True
+    return taken, missing
+
+
+def _merge(
+    src: PackedWindow,
+    cs: np.ndarray,
+    which: np.ndarray,
+    box: tuple[int, int, int, int],
+    p: Mapping[str, Any],
+    missing: np.ndarray,
+    raw: np.ndarray,
+    tfa: np.ndarray,
+) -> None:
+    """Compute frames ``which`` on the ``missing`` tiles and write them there."""
+    r = np.empty((which.size,) + raw.shape[1:], np.float32)
+    f = np.empty(r.shape if tfa.shape[0] == raw.shape[0] else (1, 1, 1), np.float32)
+    _computed(src, cs[which], box, p, missing, r, f)
+    put = _computed_mask(box, missing)
+    for j, i in enumerate(which.tolist()):
+        raw[i][put] = r[j][put]
+        if f.shape[0] == r.shape[0]:
+            tfa[i][put] = f[j][put]
+
+
+def _computed(
+    src: PackedWindow,
+    cs: np.ndarray,
+    box: tuple[int, int, int, int],
+    p: Mapping[str, Any],
+    tiles: np.ndarray,
+    raw: np.ndarray,
+    tfa: np.ndarray,
+) -> None:
+    """Raw TFI rates (and TFA, ``pm_guide > 0``) at window indices ``cs`` on the box's tiles
+    into ``raw`` and ``tfa``; NaN on the crop rows without work and outside the runs."""
+    n = src.n
+    y0, y1, x0, x1 = box
+    sub = _tile_rows(box, tiles)
+    runs_at, runs = _runs(sub, TILE, x0, x1)
+    order = np.argsort(cs, kind="stable")
+    m = int(p["max_isi"])
+    lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
+    thr = int(p["pm_guide"])
+    # the crop rows with work
+    rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
+    _pm_kernel(
+        _Span(src.packed, src.geo, lo, hi),
+        _Centers(cs[order], order, m, thr),
+        _Region(y0, x0, TILE, rows, runs_at, runs),
+        raw,
+        tfa,
+    )
+    idle = np.ones(y1 - y0, bool)
+    idle[rows] = False
+    raw[:, idle] = np.nan
+    if thr > 0:
+        tfa[:, idle] = np.nan
 
 
 _POOL: ThreadPoolExecutor | None = None
