@@ -173,3 +173,16 @@ def test_plugin_kind_listed_opened_and_counted_by_the_service(fakecam, tmp_path)
         r = client.put("/api/source", json={"id": "file:a.dat"})
         assert r.status_code == 200, r.text
         assert client.get("/api/status").json()["source"]["kind"] == "replay"
+
+
+def test_plugin_kind_records(fakecam, tmp_path, capsys):
+    from cfsr.datfile import read_dat, read_sidecar
+    from cfsr_live.service.commands import record
+
+    p = argparse.ArgumentParser()
+    record.add_arguments(p)
+    out = tmp_path / "cam.dat"
+    assert record.run(p.parse_args(["--fakecam", "B2", "--frames", "300", "-o", str(out)])) == 0
+    assert read_dat(out).shape == (300, 48, 64)
+    assert read_sidecar(out)["source"]["kind"] == "fakecam"
+    assert "from fake camera B2" in capsys.readouterr().out
