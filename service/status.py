@@ -51,6 +51,7 @@ __all__ = [
     "WorkerReport",
     "WorkerStatus",
     "ring_status",
+    "source_losses",
     "source_report",
 ]
 
@@ -160,16 +161,21 @@ def source_report(
         replay=None if ctl is None else ReplayState.model_validate(ctl.state()),
         last_error=src.last_error or (acq.last_error if acq else None),
     )
-    # which of its counters are losses is the kind's to say (a camera package names its own)
+    link, paced = source_losses(src, own)
+    return SourceReport(status=status, usb_lost_frames=link, replay_behind_frames=paced)
+
+
+def source_losses(src: Source, counters: dict[str, Any] | None = None) -> tuple[int, int]:
+    """Frames ``src`` lost: (on its link, skipped by a paced replay), read from its own
+    ``counters`` (default: ``src.counters()``) under the names its source kind declares
+    (:attr:`cfsr_live.service.sources.SourceKind.link_loss_counter`; a camera package names
+    its own)."""
     from cfsr_live.service.sources import SourceKind, kind_of
 
+    own = src.counters() if counters is None else counters
     kind = kind_of(src) or SourceKind()
     link, paced = kind.link_loss_counter, kind.pacing_loss_counter
-    return SourceReport(
-        status=status,
-        usb_lost_frames=int(own.get(link, 0)) if link else 0,
-        replay_behind_frames=int(own.get(paced, 0)) if paced else 0,
-    )
+    return (int(own.get(link, 0)) if link else 0, int(own.get(paced, 0)) if paced else 0)
 
 
 # -- the ring -----------------------------------------------------------------------------------
