@@ -5,25 +5,8 @@ and offers it to every client. A client's queue holds at most one message: a new
 replaces an unsent one (counted as a drop for that client), so a slow tab never slows the
 others and never grows memory.
 
-WebSocket message (binary, little-endian)::
-
-    offset size  field
-    0      4     magic b"CFSR"
-    4      2     version (1)
-    6      2     header length in bytes (64)
-    8      8     step index t of the frame (int64; 1 step = 25 us)
-    16     4     frame number (uint32, counts published frames)
-    20     2     width W
-    22     2     height H
-    24     1     mask flags: bit0 coarse present, bit1 fine present
-    25     3     reserved
-    28     4     gain (float32, spikes/step shown as 255)
-    32     4     compute time (float32, ms)
-    36     4     latency (float32, ms: newest spike used -> published)
-    40     24    method name (ASCII, NUL padded)
-    64     W*H   8-bit image, row-major, upright
-    then         coarse mask, ceil(W*H/8) bytes, bit p%8 of byte p//8 (LSB first)
-    then         fine mask, same layout (zeros when absent)
+The WebSocket message is :mod:`cfsr_live.service.schema`'s (the frame header, then the image
+and one bit plane per mask name of the slot).
 """
 
 from __future__ import annotations
@@ -31,82 +14,29 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
-import struct
 import time
 from collections import deque
 from typing import Any
 
-import numpy as np
-
+from cfsr_live.service import schema
+from cfsr_live.service.frameslot import FrameSlot, SlotFrame
 from cfsr_live.service.status import ClientDrops, HubStatus
-from cfsr_live.shm.frameslot import FrameSlot, SlotFrame
 
-__all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message", "WS_HEADER"]
+__all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message"]
 
 log = logging.getLogger("cfsr.hub")
 
-WS_MAGIC = b"CFSR"
-WS_VERSION = 1
-WS_HEADER = struct.Struct("<4sHHqIHHB3xfff24s")
-assert WS_HEADER.size == 64
+def encode_ws_message(f: SlotFrame, mask_names: tuple[str, ...]) -> bytes:
+    """The frame as the binary WebSocket message (:func:`cfsr_live.service.schema.
+    encode_ws_message`)."""
+    return schema.encode_ws_message(f, mask_names)
 
 
-def encode_ws_message(f: SlotFrame) -> bytes:
-    n = f.width * f.height
-    flags = 0
-    parts = []
-    for k, name in enumerate(("coarse", "fine")):
-        m = f.masks.get(name)
-        if m is not None:
-            flags |= 1 << k
-            parts.append(np.packbits(m.reshape(-1) != 0, bitorder="little").tobytes())
-        else:
-            parts.append(bytes((n + 7) // 8))
-    head = WS_HEADER.pack(
-        WS_MAGIC,
-        WS_VERSION,
-        WS_HEADER.size,
-        f.step,
-        f.frame_no & 0xFFFFFFFF,
-        f.width,
-        f.height,
-        flags,
-        f.gain,
-        f.compute_ms,
-        f.latency_ms,
-        f.method.encode("ascii", "replace")[:24],
-    )
-    return b"".join([head, f.image.tobytes(), *parts])
-
-
-def decode_ws_message(msg: bytes) -> dict[str, Any]:
-    """Inverse of :func:`encode_ws_message` (used by tests and Python clients)."""
-    (magic, ver, hlen, step, frame_no, w, h, flags, gain, comp, lat, name) = WS_HEADER.unpack_from(
-        msg
-    )
-    if magic != WS_MAGIC:
-        raise ValueError(f"not a CFSR frame message (magic {magic!r})")
-    n = w * h
-    img = np.frombuffer(msg, np.uint8, n, hlen).reshape(h, w)
-    nb = (n + 7) // 8
-    masks = {}
-    for k, nm in enumerate(("coarse", "fine")):
-        raw = np.frombuffer(msg, np.uint8, nb, hlen + n + k * nb)
-        if flags & (1 << k):
-            masks[nm] = np.unpackbits(raw, bitorder="little")[:n].reshape(h, w).astype(bool)
-    return {
-        "version": ver,
-        "step": step,
-        "frame_no": frame_no,
-        "width": w,
-        "height": h,
-        "gain": gain,
-        "compute_ms": comp,
-        "latency_ms": lat,
-        "method": name.rstrip(b"\0").decode(),
-        "image": img,
-        "masks": masks,
-    }
+def decode_ws_message(msg: bytes, mask_names: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """Inverse of :func:`encode_ws_message` (tests and Python clients); ``mask_names``
+    default to every mask the registered methods declare, as a server's slot holds them."""
+    names = schema.display_masks() if mask_names is None else mask_names
+    return schema.decode_ws_message(msg, names)
 
 
 class ClientQueue:
@@ -189,7 +119,7 @@ class FrameHub:
             return False
         self._seq = f.seq
         self.latest = f
-        self.latest_msg = encode_ws_message(f)
+        self.latest_msg = encode_ws_message(f, self.slot.mask_names)
         self.frames_seen += 1
         self._times.append(time.monotonic())
         for c in list(self.clients.values()):

@@ -114,6 +114,30 @@ class NumberRange(BaseModel):
     maximum: float = Field(description="largest accepted value")
 
 
+class MaskInfo(BaseModel):
+    """One mask plane of the frame message: its name, overlay colour and meaning."""
+
+    name: str
+    color: list[int] = Field(description="overlay colour, RGB 0..255")
+    meaning: str
+
+
+class SchemaModel(BaseModel):
+    """The live frame schema (:mod:`cfsr_live.service.schema`), for clients that decode the
+    WebSocket frames: the viewer reads the header offsets, the mask names (in plane order),
+    their colours and the heat colour map here instead of repeating them."""
+
+    ws_version: int
+    ws_header_bytes: int
+    ws_offsets: dict[str, int] = Field(description="byte offset of each header field")
+    method_name_bytes: int
+    masks: list[MaskInfo] = Field(description="the mask planes, in the order they follow "
+                                  "the image; bit k of mask_flags marks plane k present")
+    mask_alpha: float = Field(description="opacity of a mask's colour over the image")
+    heat_lut: list[int] = Field(description="256 x RGB heat colour map, flattened")
+    counters: dict[str, str] = Field(description="the worker's counters and their meaning")
+
+
 class Limits(BaseModel):
     """Bounds the API enforces, for clients that check input before sending it.
 

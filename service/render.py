@@ -7,17 +7,15 @@ import io
 
 import numpy as np
 
-from cfsr_live.shm.frameslot import SlotFrame
+from cfsr_live.service.frameslot import SlotFrame
+from cfsr_live.service.schema import MASK_ALPHA, mask_color
 
-__all__ = ["render_rgb", "encode_png", "encode_jpeg", "HEAT_LUT", "MASK_COLORS"]
-
-#: mask overlay colours (RGB) and opacity
-MASK_COLORS = {"coarse": (255, 64, 64), "fine": (64, 255, 96)}
-MASK_ALPHA = 0.45
+__all__ = ["render_rgb", "encode_png", "encode_jpeg", "HEAT_LUT"]
 
 
 def _heat_lut() -> np.ndarray:
-    # a perceptual dark-to-bright map (inferno-like anchors), 256 x RGB
+    # a perceptual dark-to-bright map (inferno-like anchors), 256 x RGB; the viewer takes
+    # this very table from GET /api/schema
     anchors = np.array(
         [
             [0, 0, 4],
@@ -54,7 +52,7 @@ def render_rgb(
         m = f.masks.get(name)
         if m is None:
             continue
-        col = np.array(MASK_COLORS[name], np.float32)
+        col = np.array(mask_color(name), np.float32)
         sel = m.astype(bool)
         rgb[sel] = (1 - MASK_ALPHA) * rgb[sel] + MASK_ALPHA * col
     return np.clip(rgb, 0, 255).astype(np.uint8)

@@ -21,6 +21,7 @@ from cfsr_live.driver.acquisition import Acquisition
 from cfsr_live.driver.source import ReplayControl, Source
 from cfsr_live.service.catalog import SourceCatalog
 from cfsr_live.service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
+from cfsr_live.service.frameslot import FrameSlot
 from cfsr_live.service.kernels import KernelWarmup
 from cfsr_live.service.safefs import UnsafePathError, open_subfolder
 from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, RECORDING_NAME_RE, Settings, SourceSpec
@@ -36,7 +37,6 @@ from cfsr_live.service.status import (
     source_report,
 )
 from cfsr_live.service.worker import WorkerSupervisor
-from cfsr_live.shm.frameslot import FrameSlot
 from cfsr_live.shm.ring import SpikeRing
 
 if TYPE_CHECKING:

@@ -36,8 +36,9 @@ from typing import Any, Literal, NamedTuple
 
 from cfsr.layout import Layout
 from cfsr_live.service.config import WorkerConfig
+from cfsr_live.service.frameslot import FrameSlot
+from cfsr_live.service.schema import WorkerCounters
 from cfsr_live.service.status import QualityShare, RateMeter, WorkerReport, WorkerStatus
-from cfsr_live.shm.frameslot import FrameSlot
 
 __all__ = [
     "Attach",
@@ -180,7 +181,6 @@ class _Worker:
         threads: int = 1,
     ) -> None:
         from cfsr.pool import FramePool
-        from cfsr_live.shm.frameslot import STAT_FIELDS
 
         self.slot = FrameSlot.attach(slot_path)
         self.evt_q = evt_q
@@ -189,12 +189,13 @@ class _Worker:
         self.reader = None
         self.rec = None
         self.layout = None
-        st = self.slot.stats_array()
-        st[:] = 0
-        self.st = st
-        self.ix = {k: i for i, k in enumerate(STAT_FIELDS)}
-        self.st[self.ix["pid"]] = os.getpid()
-        self.st[self.ix["started"]] = time.monotonic()
+        counters = self.slot.counters()
+        counters[:] = 0
+        # the record in shared memory (indexing a structured array gives a view): a counter
+        # is a field of the schema, so a misspelt name raises instead of reading 0
+        self.st = counters[0]
+        self.st["pid"] = os.getpid()
+        self.st["started"] = time.monotonic()
         self._lost_base = self._overrun_base = self._torn_base = self._gaps_base = 0
         self._skip_base = 0
         self._next_out = 0.0
@@ -225,10 +226,10 @@ class _Worker:
         self.put("fallback", 0.0)
 
     def bump(self, name: str, by: float = 1.0) -> None:
-        self.st[self.ix[name]] += by
+        self.st[name] += by
 
     def put(self, name: str, value: float) -> None:
-        self.st[self.ix[name]] = value
+        self.st[name] = value
 
     def close(self) -> None:
         self.pool.close()
@@ -535,10 +536,9 @@ class _Worker:
         if not timed:
             return
         a = 0.2
-        ix = self.ix
         for name, v in (("compute_ms", compute_ms), ("latency_ms", latency_ms)):
-            old = self.st[ix[name]]
-            self.st[ix[name]] = v if old == 0 else (1 - a) * old + a * v
+            old = self.st[name]
+            self.st[name] = v if old == 0 else (1 - a) * old + a * v
 
     def maybe_output(self) -> bool:
         """One round of output: collect and publish, submit the next step, or show a
@@ -759,7 +759,7 @@ class WorkerSupervisor:
         self._answers: OrderedDict[int, ConfigAck] = OrderedDict()
         self._started_at = 0.0
         self._last_message: str | None = None
-        self._counter_base: dict[str, float] = {}
+        self._counter_base: dict[str, int] = {}
         self._ingest = RateMeter()  # steps ingested per second, sampled by :meth:`sample`
 
     # -- lifecycle --------------------------------------------------------------------------------
@@ -941,8 +941,8 @@ class WorkerSupervisor:
                     continue
                 alive = proc.is_alive()
                 st = self.slot.stats()
-                hb = st.get("heartbeat", 0.0)
-                compiling = st.get("first_frame_since", 0.0) > 0
+                hb = st.heartbeat
+                compiling = st.first_frame_since > 0
                 limit = self.compile_timeout if compiling else self.hang_timeout
                 hung = (
                     alive
@@ -981,36 +981,37 @@ class WorkerSupervisor:
                 self.restarts += 1
                 self._spawn()
 
+    #: counters that add up over the worker's restarts (a new worker starts from zero)
+    CUMULATIVE = ("frames_out", "steps_ingested", "worker_skip_frames", "ring_lost_frames",
+                  "ring_overruns", "ring_torn", "gaps", "errors", "q_full", "q_fast",
+                  "dropped_late", "dropped_order", "fallback_frames")
+
     def _carry_counters(self) -> None:
         """Keep cumulative counters across restarts (the new worker starts from zero)."""
         st = self.slot.stats()
-        for k in ("frames_out", "steps_ingested", "worker_skip_frames", "ring_lost_frames",
-                  "ring_overruns", "ring_torn", "gaps", "errors", "q_full", "q_fast",
-                  "dropped_late", "dropped_order", "fallback_frames"):
-            self._counter_base[k] = self._counter_base.get(k, 0.0) + st.get(k, 0.0)
-        self.slot.stats_array()[:] = 0
+        for k in self.CUMULATIVE:
+            self._counter_base[k] = self._counter_base.get(k, 0) + getattr(st, k)
+        self.slot.counters()[:] = 0
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> WorkerCounters:
+        """The worker's counters, the cumulative ones summed over its restarts."""
         st = self.slot.stats()
-        for k, base in self._counter_base.items():
-            st[k] = st.get(k, 0.0) + base
-        hb = st.get("heartbeat", 0.0)
-        st["heartbeat_age_s"] = (time.monotonic() - hb) if hb else math.inf
-        return st
+        return replace(
+            st, **{k: getattr(st, k) + base for k, base in self._counter_base.items()})
 
     def sample(self) -> None:
         """Take one sample of the steps ingested (for :meth:`status`'s ``steps_per_s``);
         called on a clock by the runtime's sampler, so the rate does not depend on how often
         the status is read."""
-        self._ingest.add(self.stats().get("steps_ingested", 0.0))
+        self._ingest.add(self.stats().steps_ingested)
 
     def status(self, rate_hz: float) -> WorkerReport:
         """The supervisor's report: the worker's state (``worker`` in ``GET /api/status``)
         and the figures it measures; ``rate_hz`` is the sensor rate the ingest rate is a
         fraction of."""
         st = self.stats()
-        age = st["heartbeat_age_s"]
-        first = st.get("first_frame_since", 0.0)
+        age = (time.monotonic() - st.heartbeat) if st.heartbeat else math.inf
+        first = st.first_frame_since
         steps_per_s = self._ingest.rate()
         return WorkerReport(
             status=WorkerStatus(
@@ -1026,23 +1027,23 @@ class WorkerSupervisor:
                 first_frame_s=(time.monotonic() - first) if first else None,
                 steps_per_s=steps_per_s,
                 real_time_factor=steps_per_s / rate_hz if rate_hz else 0.0,
-                frames_out=int(st.get("frames_out", 0)),
-                gaps=int(st.get("gaps", 0)),
+                frames_out=st.frames_out,
+                gaps=st.gaps,
                 workers=self.workers,
                 threads_per_worker=self.threads,
                 quality=QualityShare(
                     mode=self.config.quality if "quality" in self.config.method.params
                     else None,
-                    full=int(st.get("q_full", 0)),
-                    fast=int(st.get("q_fast", 0)),
+                    full=st.q_full,
+                    fast=st.q_fast,
                 ),
-                dropped_late=int(st.get("dropped_late", 0)),
-                dropped_order=int(st.get("dropped_order", 0)),
-                fallback_method="tfp" if st.get("fallback", 0) and first else None,
-                fallback_frames=int(st.get("fallback_frames", 0)),
+                dropped_late=st.dropped_late,
+                dropped_order=st.dropped_order,
+                fallback_method="tfp" if st.fallback and first else None,
+                fallback_frames=st.fallback_frames,
             ),
-            latency_ms=float(st.get("latency_ms", 0.0)),
-            compute_ms=float(st.get("compute_ms", 0.0)),
-            ring_lost_frames=int(st.get("ring_lost_frames", 0)),
-            skipped_frames=int(st.get("worker_skip_frames", 0)),
+            latency_ms=st.latency_ms,
+            compute_ms=st.compute_ms,
+            ring_lost_frames=st.ring_lost_frames,
+            skipped_frames=st.worker_skip_frames,
         )

@@ -46,8 +46,8 @@ def free_port() -> int:
 
 def segments_of(pid: int) -> list[Path]:
     """Shared-memory files (spike ring, frame slot) that process ``pid`` created."""
+    from cfsr_live.service.frameslot import FRAME_PREFIX
     from cfsr_live.shm.files import shared_dirs
-    from cfsr_live.shm.frameslot import FRAME_PREFIX
     from cfsr_live.shm.ring import RING_PREFIX
 
     return sorted(p for d in set(shared_dirs()) if d.is_dir()
@@ -261,6 +261,8 @@ def ws_frames(server: LiveServer, n: int, *, timeout: float = 60.0, method: str 
     """Receive ``n`` decoded frames (optionally only those of ``method``) over the WebSocket."""
     from cfsr_live.service.hub import decode_ws_message
 
+    # the mask planes' names, as a client learns them from the server
+    names = tuple(m["name"] for m in server.get("/api/schema").json()["masks"])
     out = []
     end = time.monotonic() + timeout
     with server.ws_connect(query) as ws:
@@ -272,7 +274,7 @@ def ws_frames(server: LiveServer, n: int, *, timeout: float = 60.0, method: str 
                 msg = ws.recv(timeout=left)
             except TimeoutError:
                 continue
-            d = decode_ws_message(msg)
+            d = decode_ws_message(msg, names)
             if method is None or d["method"] == method:
                 out.append(d)
     return out

@@ -222,14 +222,14 @@ def test_seqlock_words():
 
 
 def test_shm_imports_nothing_of_ours():
-    """``shm`` sits below ``driver`` and ``service``: plumbing that imports none of them (nor
-    ``cfsr``), so both may import it without an arrow pointing up."""
+    """``shm`` sits below ``driver`` and ``service``: generic plumbing (shared files, the
+    seqlock, the spike ring) that imports none of them (nor ``cfsr``), so both may import it
+    without an arrow pointing up; what a frame is belongs to the service (its frame slot)."""
     import subprocess
     import sys
 
     code = (
-        "import sys, cfsr_live.shm.files, cfsr_live.shm.seqlock, cfsr_live.shm.ring, "
-        "cfsr_live.shm.frameslot\n"
+        "import sys, cfsr_live.shm.files, cfsr_live.shm.seqlock, cfsr_live.shm.ring\n"
         "bad = [m for m in ('cfsr', 'cfsr_live.driver', 'cfsr_live.replay', 'cfsr_live.service') "
         "if m in sys.modules]\n"
         "assert not bad, bad\n"

@@ -9,9 +9,9 @@ import os
 import numpy as np
 import pytest
 
+from cfsr_live.service.frameslot import FrameSlot
 from cfsr_live.service.hub import ClientQueue, FrameHub, decode_ws_message, encode_ws_message
 from cfsr_live.service.settings import Settings, SourceSpec
-from cfsr_live.shm.frameslot import FrameSlot
 
 
 def _slot_with_frame(h=5, w=7, step=2**40 + 3):
@@ -31,12 +31,86 @@ def test_frame_slot_and_ws_message_roundtrip():
         assert f is not None and f.step == 2**40 + 3 and f.method == "csr"
         assert np.array_equal(f.image, img) and set(f.masks) == {"coarse"}
         assert slot.read(since=f.seq) is None  # nothing newer
-        msg = encode_ws_message(f)
-        assert len(msg) == 64 + 35 + 2 * 5  # header, image, two 35-bit planes
-        d = decode_ws_message(msg)
+        names = slot.mask_names
+        assert names == ("coarse", "fine", "motion")  # every mask the methods declare
+        msg = encode_ws_message(f, names)
+        assert len(msg) == 64 + 35 + 3 * 5  # header, image, three 35-bit planes
+        d = decode_ws_message(msg, names)
         assert d["step"] == 2**40 + 3 and d["method"] == "csr" and d["gain"] == 0.5
         assert np.array_equal(d["image"], img)
         assert np.array_equal(d["masks"]["coarse"], coarse) and "fine" not in d["masks"]
+    finally:
+        slot.close()
+
+
+def test_every_declared_mask_reaches_the_frame_message():
+    """SNM's ``motion`` mask is published, carried in the WebSocket message and decoded by
+    name (the slot's planes come from the methods' declared masks, not a fixed pair)."""
+    from cfsr.methods import get_method
+    from cfsr.methods import methods as registered
+
+    slot = FrameSlot.create(max_pixels=12)
+    try:
+        for name in registered():
+            assert set(get_method(name).masks) <= set(slot.mask_names), name
+        motion = np.zeros((3, 4), bool)
+        motion[2, 3] = True
+        slot.publish(step=9, image=np.zeros((3, 4), np.uint8), masks={"motion": motion},
+                     method="snm", gain=0.5, t_arrival=0.0, compute_ms=0.0, latency_ms=0.0)
+        d = decode_ws_message(encode_ws_message(slot.read(), slot.mask_names), slot.mask_names)
+        assert set(d["masks"]) == {"motion"} and np.array_equal(d["masks"]["motion"], motion)
+        # a mask no plane holds is refused, never dropped on the way
+        with pytest.raises(ValueError, match="not among the slot"):
+            slot.publish(step=10, image=np.zeros((3, 4), np.uint8),
+                         masks={"halo": motion}, method="x", gain=0.5, t_arrival=0.0,
+                         compute_ms=0.0, latency_ms=0.0)
+    finally:
+        slot.close()
+
+
+def test_worker_counters_are_one_typed_record():
+    """The counters are fields of the schema: the worker's writes land in the web process's
+    typed copy, and a misspelt counter fails instead of reading 0."""
+    from cfsr_live.service.schema import COUNTER_DTYPE, WorkerCounters
+
+    slot = FrameSlot.create(max_pixels=4)
+    try:
+        rec = slot.counters()[0]  # what the worker holds: a view into shared memory
+        rec["frames_out"] += 3
+        rec["compute_ms"] = 12.5
+        st = slot.stats()
+        assert isinstance(st, WorkerCounters)
+        assert st.frames_out == 3 and isinstance(st.frames_out, int) and st.compute_ms == 12.5
+        assert set(COUNTER_DTYPE.names) == set(WorkerCounters.__dataclass_fields__)
+        with pytest.raises((ValueError, KeyError)):
+            rec["frames_outt"] += 1
+        with pytest.raises(AttributeError):
+            st.frames_outt  # noqa: B018
+    finally:
+        slot.close()
+
+
+def test_frame_message_names_its_layout_once():
+    """The header the encoder writes is the one the schema document describes to the
+    viewer (offsets of every field), and one method-name length serves slot and wire."""
+    from cfsr_live.service.schema import METHOD_NAME_BYTES, WS_HEADER, schema_document
+
+    slot, img, coarse = _slot_with_frame()
+    try:
+        slot.publish(step=5, image=img, masks={"coarse": coarse}, method="m" * 40, gain=0.5,
+                     t_arrival=0.0, compute_ms=1.5, latency_ms=2.5)
+        f = slot.read()
+        assert f.method == "m" * METHOD_NAME_BYTES  # cut to the same length as on the wire
+        msg = encode_ws_message(f, slot.mask_names)
+        doc = schema_document(slot.mask_names)
+        off = doc["ws_offsets"]
+        assert doc["ws_header_bytes"] == WS_HEADER.size
+        assert int.from_bytes(msg[off["width"]:off["width"] + 2], "little") == f.width
+        assert int.from_bytes(msg[off["step"]:off["step"] + 8], "little") == 5
+        assert msg[off["mask_planes"]] == len(doc["masks"]) == len(slot.mask_names)
+        assert msg[off["method"]:off["method"] + METHOD_NAME_BYTES] == f.method.encode()
+        assert [m["name"] for m in doc["masks"]] == list(slot.mask_names)
+        assert len(doc["heat_lut"]) == 256 * 3
     finally:
         slot.close()
 

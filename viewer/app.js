@@ -47,18 +47,35 @@
   }
 
   // ---- colour maps -----------------------------------------------------------------------------
-  const HEAT_ANCHORS = [[0,0,4],[40,11,84],[101,21,110],[159,42,99],[212,72,66],[245,125,21],[250,193,39],[252,255,164]];
+  // The frame schema (GET /api/schema) is the server's: the message header's offsets, the mask
+  // planes' names in order with their colours and meanings, and the heat colour map. Where two
+  // masks hold, the later plane is painted (fine over coarse: the finer statement), so two
+  // masks never blend into a third colour.
+  let SCHEMA = null, MASKS = [], ALPHA = 0.4;
   const HEAT = new Uint8Array(256 * 3);
-  for (let i = 0; i < 256; i++) {
-    const x = i / 255 * (HEAT_ANCHORS.length - 1);
-    const k = Math.min(HEAT_ANCHORS.length - 2, Math.floor(x));
-    const f = x - k;
-    for (let c = 0; c < 3; c++) HEAT[i * 3 + c] = Math.round(HEAT_ANCHORS[k][c] * (1 - f) + HEAT_ANCHORS[k + 1][c] * f);
+  const maskBox = (name) => $("ov-" + name);
+  async function loadSchema() {
+    SCHEMA = await api("/api/schema");
+    HEAT.set(SCHEMA.heat_lut);
+    MASKS = SCHEMA.masks;
+    ALPHA = SCHEMA.mask_alpha;
+    const holder = $("mask-boxes");
+    holder.textContent = "";
+    for (const m of MASKS) {
+      const label = document.createElement("label");
+      label.className = "mask";
+      label.title = m.meaning || (m.name + " mask");
+      const box = document.createElement("input");
+      box.type = "checkbox"; box.id = "ov-" + m.name; box.disabled = true;
+      box.addEventListener("change", overlaysChanged);
+      const sw = document.createElement("i");
+      sw.className = "swatch"; sw.style.background = "rgb(" + m.color.join(",") + ")";
+      label.append(box, " ", sw, " " + m.name + " mask");
+      holder.append(label);
+    }
+    drawLegend();
   }
-  // the same colours as --coarse / --fine in style.css; where both masks hold, the fine one
-  // is painted (it is the finer statement), so the two never blend into a third colour
-  const COARSE = [47, 123, 255], FINE = [255, 140, 26], ALPHA = 0.4;
-  (function drawLegend() {
+  function drawLegend() {
     const lctx = $("legend-bar").getContext("2d");
     const img = lctx.createImageData(256, 10);
     for (let y = 0; y < 10; y++) for (let x = 0; x < 256; x++) {
@@ -66,7 +83,7 @@
       img.data[o] = HEAT[x * 3]; img.data[o + 1] = HEAT[x * 3 + 1]; img.data[o + 2] = HEAT[x * 3 + 2]; img.data[o + 3] = 255;
     }
     lctx.putImageData(img, 0, 0);
-  })();
+  }
 
   // ---- frame decoding and drawing -------------------------------------------------------------
   const canvas = $("frame");
@@ -78,23 +95,24 @@
   const fpsTimes = [];
 
   function decode(buf) {
-    const dv = new DataView(buf);
+    const dv = new DataView(buf), O = SCHEMA.ws_offsets;
     const magic = String.fromCharCode(dv.getUint8(0), dv.getUint8(1), dv.getUint8(2), dv.getUint8(3));
     if (magic !== "CFSR") throw new Error("bad frame magic " + magic);
-    const hlen = dv.getUint16(6, true);
-    const step = Number(dv.getBigInt64(8, true));
-    const frameNo = dv.getUint32(16, true);
-    const w = dv.getUint16(20, true), h = dv.getUint16(22, true);
-    const flags = dv.getUint8(24);
-    const gain = dv.getFloat32(28, true);
-    const computeMs = dv.getFloat32(32, true), latencyMs = dv.getFloat32(36, true);
+    if (dv.getUint16(O.version, true) !== SCHEMA.ws_version) throw new Error("frame version differs from the schema's");
+    const hlen = dv.getUint16(O.header_bytes, true);
+    const step = Number(dv.getBigInt64(O.step, true));
+    const frameNo = dv.getUint32(O.frame_no, true);
+    const w = dv.getUint16(O.width, true), h = dv.getUint16(O.height, true);
+    const flags = dv.getUint8(O.mask_flags);
+    const gain = dv.getFloat32(O.gain, true);
+    const computeMs = dv.getFloat32(O.compute_ms, true), latencyMs = dv.getFloat32(O.latency_ms, true);
     let name = "";
-    for (let i = 40; i < 64; i++) { const c = dv.getUint8(i); if (!c) break; name += String.fromCharCode(c); }
+    for (let i = O.method; i < O.method + SCHEMA.method_name_bytes; i++) { const c = dv.getUint8(i); if (!c) break; name += String.fromCharCode(c); }
     const n = w * h, nb = (n + 7) >> 3;
     const image = new Uint8Array(buf, hlen, n);
-    const coarse = (flags & 1) ? new Uint8Array(buf, hlen + n, nb) : null;
-    const fine = (flags & 2) ? new Uint8Array(buf, hlen + n + nb, nb) : null;
-    return { step, frameNo, w, h, gain, computeMs, latencyMs, method: name, image, coarse, fine };
+    const masks = {};
+    MASKS.forEach((m, k) => { if (flags & (1 << k)) masks[m.name] = new Uint8Array(buf, hlen + n + k * nb, nb); });
+    return { step, frameNo, w, h, gain, computeMs, latencyMs, method: name, image, masks };
   }
 
   const bit = (plane, p) => (plane[p >> 3] >> (p & 7)) & 1;
@@ -102,13 +120,15 @@
     if (target.width !== f.w || target.height !== f.h) { target.width = f.w; target.height = f.h; fit(); }
     const imageData = tctx.createImageData(f.w, f.h);
     const heat = document.querySelector('input[name="view"]:checked').value === "heat";
-    const showC = $("ov-coarse").checked && f.coarse, showF = $("ov-fine").checked && f.fine;
+    // the checked masks this frame has, the last plane first (it is painted over the others)
+    const shown = MASKS.filter((m) => f.masks[m.name] && maskBox(m.name).checked).reverse();
     const d = imageData.data, img = f.image, n = f.w * f.h;
     for (let p = 0, o = 0; p < n; p++, o += 4) {
       const v = img[p];
       let r, g, b;
       if (heat) { r = HEAT[v * 3]; g = HEAT[v * 3 + 1]; b = HEAT[v * 3 + 2]; } else { r = g = b = v; }
-      const m = showF && bit(f.fine, p) ? FINE : showC && bit(f.coarse, p) ? COARSE : null;
+      let m = null;
+      for (let k = 0; k < shown.length && !m; k++) if (bit(f.masks[shown[k].name], p)) m = shown[k].color;
       if (m) { r = r * (1 - ALPHA) + m[0] * ALPHA; g = g * (1 - ALPHA) + m[1] * ALPHA; b = b * (1 - ALPHA) + m[2] * ALPHA; }
       d[o] = r; d[o + 1] = g; d[o + 2] = b; d[o + 3] = 255;
     }
@@ -146,13 +166,12 @@
   }
   $("zoom").addEventListener("change", fit);
   new ResizeObserver(fit).observe($("stage"));
-  for (const el of document.querySelectorAll('input[name="view"], #ov-coarse, #ov-fine')) {
-    el.addEventListener("change", () => {
-      $("legend").classList.toggle("hidden", document.querySelector('input[name="view"]:checked').value !== "heat");
-      if (state.pinned) state.pinned.redraw = true;
-      dirty = true;
-    });
+  function overlaysChanged() {
+    $("legend").classList.toggle("hidden", document.querySelector('input[name="view"]:checked').value !== "heat");
+    if (state.pinned) state.pinned.redraw = true;
+    dirty = true;
   }
+  for (const el of document.querySelectorAll('input[name="view"]')) el.addEventListener("change", overlaysChanged);
 
   function popcount(bits) {
     if (!bits) return 0;
@@ -164,8 +183,8 @@
   function onFrame(f) {
     latest = f; dirty = true;
     state.frames++; state.step = f.step; state.method = f.method; state.width = f.w; state.height = f.h;
-    state.masks = [f.coarse ? "coarse" : null, f.fine ? "fine" : null].filter(Boolean);
-    state.maskPixels = { coarse: popcount(f.coarse), fine: popcount(f.fine) };
+    state.masks = MASKS.map((m) => m.name).filter((nm) => f.masks[nm]);
+    state.maskPixels = Object.fromEntries(MASKS.map((m) => [m.name, popcount(f.masks[m.name])]));
     const now = performance.now();
     fpsTimes.push(now);
     while (fpsTimes.length && now - fpsTimes[0] > 2000) fpsTimes.shift();
@@ -175,8 +194,7 @@
     $("frame-masks").textContent = state.masks.length ? state.masks.join(", ") : "none";
     $("viewer-fps").textContent = (fpsTimes.length / 2).toFixed(1);
     $("legend-max").textContent = f.gain.toFixed(3);
-    $("ov-coarse").disabled = !f.coarse;
-    $("ov-fine").disabled = !f.fine;
+    for (const m of MASKS) maskBox(m.name).disabled = !f.masks[m.name];
     for (const w of frameWaiters.splice(0)) w(f);
     if (state.pinned) alignCompare(f);
   }
@@ -595,26 +613,27 @@
     const params = state.config && state.config.method === f.method ? state.config.params : {};
     const fields = {
       Software: "CFSR live viewer", method: f.method, step: String(f.step),
-      parameters: JSON.stringify(params), masks: [f.coarse ? "coarse" : null, f.fine ? "fine" : null].filter(Boolean).join(","),
+      parameters: JSON.stringify(params), masks: Object.keys(f.masks).join(","),
       view: document.querySelector('input[name="view"]:checked').value
-        + ($("ov-coarse").checked && f.coarse ? "+coarse" : "") + ($("ov-fine").checked && f.fine ? "+fine" : ""),
+        + MASKS.filter((m) => f.masks[m.name] && maskBox(m.name).checked).map((m) => "+" + m.name).join(""),
       "display gain": f.gain.toFixed(4) + " spikes/step",
     };
     const base = "cfsr-" + f.method + "-step" + f.step;
     const names = [];
     download(withText(await canvasPng(canvas), fields), base + ".png");
     names.push(base + ".png");
-    if (f.coarse || f.fine) {
-      // masks as their own picture: red = coarse, green = fine (255 where set)
+    const planes = MASKS.map((m) => m.name).filter((nm) => f.masks[nm]).slice(0, 3);
+    if (planes.length) {
+      // masks as their own picture, one colour channel each (255 where set)
       const c = document.createElement("canvas"); c.width = f.w; c.height = f.h;
       const mctx = c.getContext("2d"), img = mctx.createImageData(f.w, f.h);
       for (let p = 0, o = 0; p < f.w * f.h; p++, o += 4) {
-        img.data[o] = f.coarse && bit(f.coarse, p) ? 255 : 0;
-        img.data[o + 1] = f.fine && bit(f.fine, p) ? 255 : 0;
+        planes.forEach((nm, ch) => { img.data[o + ch] = bit(f.masks[nm], p) ? 255 : 0; });
         img.data[o + 3] = 255;
       }
       mctx.putImageData(img, 0, 0);
-      download(withText(await canvasPng(c), Object.assign({}, fields, { channels: "red: coarse mask, green: fine mask" })), base + "-masks.png");
+      const channels = planes.map((nm, ch) => ["red", "green", "blue"][ch] + ": " + nm + " mask").join(", ");
+      download(withText(await canvasPng(c), Object.assign({}, fields, { channels })), base + "-masks.png");
       names.push(base + "-masks.png");
     }
     state.lastSnapshot = { names, fields };
@@ -707,7 +726,7 @@
       ev.preventDefault();
       stepBack();
     } else if (ev.key === "m" || ev.key === "M") {
-      const boxes = [$("ov-coarse"), $("ov-fine")].filter((b) => !b.disabled);
+      const boxes = MASKS.map((m) => maskBox(m.name)).filter((b) => !b.disabled);
       const on = !boxes.some((b) => b.checked);
       for (const b of boxes) { b.checked = on; b.dispatchEvent(new Event("change")); }
     } else if (ev.key === "c" || ev.key === "C") {
@@ -857,6 +876,7 @@
 
   (async function init() {
     await ensureSession();
+    try { await loadSchema(); } catch (e) { msg($("config-msg"), "frame schema: " + e.message, true); return; }
     connect();
     try { await loadLimits(); await loadMethods(); await loadConfig(); await loadSources(); }
     catch (e) { msg($("config-msg"), e.message, true); }

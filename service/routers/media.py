@@ -14,6 +14,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from cfsr_live.service.deps import HubDep, require_token, ws_token_ok
 from cfsr_live.service.hub import ClientQueue, FrameHub
+from cfsr_live.service.models import SchemaModel
 from cfsr_live.service.render import encode_jpeg, encode_png, render_rgb
 from cfsr_live.service.settings import MAX_FPS_RANGE
 
@@ -23,12 +24,21 @@ log = logging.getLogger("cfsr.media")
 _SEND_TIMEOUT = 10.0
 
 
-def _overlays(spec: str) -> tuple[str, ...]:
+def _overlays(spec: str, known: tuple[str, ...]) -> tuple[str, ...]:
+    """The mask names of an ``overlay`` query, each one of the slot's (``known``)."""
     out = tuple(s for s in (x.strip() for x in spec.split(",")) if s)
-    bad = [s for s in out if s not in ("coarse", "fine")]
+    bad = [s for s in out if s not in known]
     if bad:
-        raise HTTPException(422, f"unknown overlay(s) {bad}; use coarse, fine")
+        raise HTTPException(422, f"unknown overlay(s) {bad[:4]}; use {', '.join(known)}")
     return out
+
+
+@router.get("/api/schema", response_model=SchemaModel,
+            summary="the frame message's layout, mask names and colours, heat map, counters")
+async def get_schema(hub: HubDep) -> dict:
+    from cfsr_live.service.schema import schema_document
+
+    return schema_document(hub.slot.mask_names)
 
 
 @router.get(
@@ -41,10 +51,11 @@ def _overlays(spec: str) -> tuple[str, ...]:
 async def frame_png(
     hub: HubDep,
     view: str = Query("gray", pattern="^(gray|heat)$"),
-    overlay: str = Query("", description="comma list of masks to tint: coarse, fine"),
+    overlay: str = Query("", description="comma list of masks to tint (GET /api/schema's "
+                         "masks: coarse, fine, motion with the built-in methods)"),
     wait: float = Query(2.0, ge=0, le=30, description="seconds to wait for a first frame"),
 ) -> Response:
-    ov = _overlays(overlay)
+    ov = _overlays(overlay, hub.slot.mask_names)
     f = hub.latest
     if f is None and wait > 0:
         f = await hub.wait_frame(wait)
@@ -73,7 +84,7 @@ async def mjpeg(
     view: str = Query("gray", pattern="^(gray|heat)$"),
     overlay: str = Query(""),
 ) -> StreamingResponse:
-    ov = _overlays(overlay)
+    ov = _overlays(overlay, hub.slot.mask_names)
     client = hub.add(ClientQueue("mjpeg", max_fps=fps, peer=str(request.client)))
 
     async def frames():

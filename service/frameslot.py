@@ -1,11 +1,14 @@
 """The latest-frame slot: shared memory from the worker process to the web process.
 
-Holds exactly one frame (the newest): the 8-bit display image, the coarse and fine masks, and
-the metadata of the step, behind the package's seqlock (:mod:`cfsr_live.shm.seqlock`; the sequence
+Holds exactly one frame (the newest): the 8-bit display image, one plane per mask name, and
+the metadata of the step, behind the seqlock of :mod:`cfsr_live.shm.seqlock` (the sequence
 number is the frame number, so a reader asks for "newer than the one I have" and retries if
-the writer was busy). A second region holds the worker's live counters (heartbeat, timings,
-drops) as float64 words the worker updates in place: single words, read without the lock,
-because each one is meaningful on its own.
+the writer was busy). A second region holds the worker's live counters, one record of
+:data:`~cfsr_live.service.schema.COUNTER_DTYPE` the worker updates in place: single words,
+read without the lock, because each one is meaningful on its own. The mask names
+(:func:`~cfsr_live.service.schema.display_masks`) are written into the header by the process
+that creates the slot, so the worker that attaches publishes under the same names and in the
+same order as the web process reads them.
 """
 
 from __future__ import annotations
@@ -13,82 +16,43 @@ from __future__ import annotations
 import mmap
 import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from cfsr_live.service.schema import (
+    COUNTER_DTYPE,
+    MASK_NAME_BYTES,
+    MAX_MASKS,
+    METHOD_NAME_BYTES,
+    SlotFrame,
+    WorkerCounters,
+    display_masks,
+)
 from cfsr_live.shm.files import attach_shared_file, create_shared_file, release_shared_file
 from cfsr_live.shm.seqlock import EMPTY, WRITING, Seqlock
 
-__all__ = ["FRAME_PREFIX", "STAT_FIELDS", "FrameSlot", "SlotFrame"]
+__all__ = ["FRAME_PREFIX", "FrameSlot", "SlotFrame"]
 
 #: name prefix of the latest-frame slot's shared-memory file
 FRAME_PREFIX = "cfsr-frame"
 
-_MAGIC = 0x544F4C53_4D415247  # "GRAMSLOT": version 2, the sequence word follows shm.seqlock
+_MAGIC = 0x544F4C53_4D415248  # "HRAMSLOT": version 3, mask names in the header
 _HDR = 1024
 _STATS_OFF = 1024
 _PAYLOAD_OFF = 4096
 # int64 header words
-_M, _SEQ, _MAXPIX, _W, _H, _STEP, _FRAMENO, _FLAGS = 0, 1, 2, 3, 4, 5, 6, 7
+_M, _SEQ, _MAXPIX, _W, _H, _STEP, _FRAMENO, _FLAGS, _NMASKS = 0, 1, 2, 3, 4, 5, 6, 7, 13
 # float64 header words (same array viewed as float64)
 _TPUB, _TARR, _COMPUTE, _GAIN, _LAT = 8, 9, 10, 11, 12
-_NAME_OFF, _NAME_LEN = 256, 32  # method name, ASCII
-
-#: worker counters, in order, stored as float64 words in the stats region
-STAT_FIELDS = (
-    "heartbeat",  # time.monotonic() of the last loop
-    "pid",
-    "frames_out",
-    "steps_ingested",
-    "worker_skip_frames",
-    "ring_lost_frames",
-    "ring_overruns",
-    "ring_torn",
-    "gaps",
-    "errors",
-    "compute_ms",  # EMA
-    "latency_ms",  # EMA, arrival of the newest step used -> publish
-    "config_version",
-    "started",
-    # time.monotonic() when the first frame under the current config began computing, 0 when
-    # none is pending: on a machine's first use that frame waits on numba's compiler
-    "first_frame_since",
-    "workers",  # reconstruction processes in the worker's pool
-    "threads",  # numba/OpenCV threads per process
-    "q_full",  # frames shown at CFSR's full quality tier (every frame of other methods)
-    "q_fast",  # frames shown at CFSR's fast tier
-    "dropped_late",  # frames computed but not shown: too late, or under a replaced config
-    "dropped_order",  # frames computed but not shown: a newer step was shown first
-    "fallback",  # 1 while TFP frames stand in for a first frame that is compiling
-    "fallback_frames",  # TFP frames shown that way
-)
-
-
-@dataclass
-class SlotFrame:
-    """A consistent copy of the slot's frame (``seq`` is its sequence number)."""
-
-    seq: int
-    step: int
-    frame_no: int
-    width: int
-    height: int
-    method: str
-    gain: float
-    t_publish: float
-    t_arrival: float
-    compute_ms: float
-    latency_ms: float
-    image: np.ndarray
-    masks: dict[str, np.ndarray] = field(default_factory=dict)
+_NAME_OFF = 256  # method name, ASCII, METHOD_NAME_BYTES
+_MASKS_OFF = 512  # mask names, ASCII, MASK_NAME_BYTES each, MAX_MASKS at most
+assert _MASKS_OFF + MAX_MASKS * MASK_NAME_BYTES <= _HDR
+assert _STATS_OFF + COUNTER_DTYPE.itemsize <= _PAYLOAD_OFF
 
 
 class FrameSlot:
     """Create with :meth:`create` (web process), :meth:`attach` by path (worker)."""
-
-    MASK_NAMES = ("coarse", "fine")
 
     def __init__(self, path: Path, mm: mmap.mmap, owner: bool) -> None:
         self.path, self._mm, self.owner = path, mm, owner
@@ -98,20 +62,40 @@ class FrameSlot:
         if self._i[_M] != _MAGIC:
             raise ValueError(f"{path}: not a frame slot")
         self.max_pixels = int(self._i[_MAXPIX])
-        self._stats = np.frombuffer(mm, np.float64, len(STAT_FIELDS), _STATS_OFF)
+        self._stats = np.frombuffer(mm, COUNTER_DTYPE, 1, _STATS_OFF)
+        names = []
+        for k in range(int(self._i[_NMASKS])):
+            at = _MASKS_OFF + k * MASK_NAME_BYTES
+            raw = bytes(mm[at : at + MASK_NAME_BYTES])
+            names.append(raw.split(b"\0")[0].decode("ascii"))
+        #: the names of the mask planes, in the order the WebSocket message carries them
+        self.mask_names: tuple[str, ...] = tuple(names)
         mp = self.max_pixels
         self._img = np.frombuffer(mm, np.uint8, mp, _PAYLOAD_OFF)
         self._masks = {
             name: np.frombuffer(mm, np.uint8, mp, _PAYLOAD_OFF + (k + 1) * mp)
-            for k, name in enumerate(self.MASK_NAMES)
+            for k, name in enumerate(self.mask_names)
         }
 
     @classmethod
-    def create(cls, max_pixels: int = 1024 * 1024, directory: str | None = None) -> FrameSlot:
-        size = _PAYLOAD_OFF + 3 * max_pixels
+    def create(cls, max_pixels: int = 1024 * 1024, directory: str | None = None,
+               mask_names: tuple[str, ...] | None = None) -> FrameSlot:
+        """A new slot for frames of at most ``max_pixels`` and the masks ``mask_names``
+        (default: every mask a registered method declares)."""
+        names = display_masks() if mask_names is None else tuple(mask_names)
+        if len(names) > MAX_MASKS:
+            raise ValueError(f"{len(names)} masks; a frame carries {MAX_MASKS}")
+        size = _PAYLOAD_OFF + (1 + len(names)) * max_pixels
         path, mm = create_shared_file(FRAME_PREFIX, size, directory)
+        for k, name in enumerate(names):
+            raw = name.encode("ascii")
+            if not 0 < len(raw) < MASK_NAME_BYTES:
+                raise ValueError(f"mask name {name!r}: 1-{MASK_NAME_BYTES - 1} characters")
+            at = _MASKS_OFF + k * MASK_NAME_BYTES
+            mm[at : at + MASK_NAME_BYTES] = raw.ljust(MASK_NAME_BYTES, b"\0")
         hdr = np.frombuffer(mm, np.int64, _HDR // 8, 0)
         hdr[_MAXPIX] = max_pixels
+        hdr[_NMASKS] = len(names)
         Seqlock(hdr[_SEQ : _SEQ + 1]).reset()
         hdr[_M] = _MAGIC
         del hdr
@@ -151,7 +135,11 @@ class FrameSlot:
         self._lock.begin_write(0)
         self._img[: h * w] = image.reshape(-1)
         flags = 0
-        for k, name in enumerate(self.MASK_NAMES):
+        unknown = set(masks) - set(self.mask_names)
+        if unknown:  # a method's mask that no plane holds would vanish on its way to the viewer
+            raise ValueError(f"masks {sorted(unknown)} are not among the slot's "
+                             f"{list(self.mask_names)}")
+        for k, name in enumerate(self.mask_names):
             m = masks.get(name)
             if m is not None:
                 self._masks[name][: h * w] = np.asarray(m, np.uint8).reshape(-1)
@@ -165,13 +153,14 @@ class FrameSlot:
             gain,
             latency_ms,
         )
-        name = method.encode("ascii", "replace")[: _NAME_LEN - 1]
-        self._mm[_NAME_OFF : _NAME_OFF + _NAME_LEN] = name.ljust(_NAME_LEN, b"\0")
+        name = method.encode("ascii", "replace")[:METHOD_NAME_BYTES]
+        self._mm[_NAME_OFF : _NAME_OFF + METHOD_NAME_BYTES] = name.ljust(METHOD_NAME_BYTES, b"\0")
         self._lock.end_write(0, frame_no)
 
-    def stats_array(self) -> np.ndarray:
-        """The worker's counters (:data:`STAT_FIELDS`, in order) as a writable float64 view
-        into shared memory: the worker updates them in place, one word at a time."""
+    def counters(self) -> np.ndarray:
+        """The worker's counters as a writable one-element record array of
+        :data:`~cfsr_live.service.schema.COUNTER_DTYPE` in shared memory: the worker updates
+        its fields in place (``c["frames_out"] += 1``), one word at a time."""
         return self._stats
 
     # -- reader (web process) -------------------------------------------------------------------
@@ -180,9 +169,9 @@ class FrameSlot:
         """Sequence number of the newest frame (negative: none yet, or being written)."""
         return self._lock.read(0)
 
-    def stats(self) -> dict[str, float]:
-        """A copy of the worker's counters by name."""
-        return {k: float(v) for k, v in zip(STAT_FIELDS, self._stats, strict=True)}
+    def stats(self) -> WorkerCounters:
+        """A copy of the worker's counters."""
+        return WorkerCounters.from_record(self._stats[0])
 
     def read(self, *, since: int | None = None, retries: int = 50) -> SlotFrame | None:
         """A consistent copy of the newest frame, or None if there is none, it is the one
@@ -201,12 +190,13 @@ class FrameSlot:
             img = self._img[: h * w].copy().reshape(h, w)
             masks = {
                 name: self._masks[name][: h * w].copy().reshape(h, w)
-                for k, name in enumerate(self.MASK_NAMES)
+                for k, name in enumerate(self.mask_names)
                 if flags & (1 << k)
             }
             meta = (int(i[_FRAMENO]), float(f[_TPUB]), float(f[_TARR]), float(f[_COMPUTE]))
             gain, lat = float(f[_GAIN]), float(f[_LAT])
-            name = bytes(self._mm[_NAME_OFF : _NAME_OFF + _NAME_LEN]).split(b"\0")[0].decode()
+            raw = bytes(self._mm[_NAME_OFF : _NAME_OFF + METHOD_NAME_BYTES])
+            name = raw.split(b"\0")[0].decode()
             if lock.unchanged(0, s1):
                 return SlotFrame(
                     seq=s1,
