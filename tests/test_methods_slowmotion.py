@@ -99,6 +99,7 @@ def test_fuse_rules():
         "slow_fine_full": 0,
         "slow_noise": 0.0,
         "slow_region_weight": 0.0,  # the slow class: test_slow_class
+        "slow_region_noise": 0.0,
     }
     assert slow_fuse(src, 300, rate, None, {**p, "slow_reach": 0}) is rate
     # temporal noise breaks the exact bounds: the stage stands aside
@@ -142,6 +143,7 @@ def test_slow_class():
         "slow_region_intervals": 6,
         "slow_region_weight": 0.5,
         "slow_rough": 1.3,
+        "slow_region_noise": 0.0,
     }
     everywhere = np.ones((H, W), bool)
     slow, half, count = slow_rates(src, 300, everywhere, reach=128)
@@ -165,6 +167,12 @@ def test_slow_class():
     off = slow_fuse(src, 300, rate, fine, {**p, "slow_region_weight": 0.0})
     assert np.abs(out - off)[cls & ~inner].max() > 0.004
     np.testing.assert_array_equal(out[~cls], off[~cls])
+    # temporal noise above slow_noise: only the slow class is left, up to slow_region_noise
+    noisy = slow_fuse(src, 300, rate, fine, {**p, "slow_region_noise": 0.5}, noise=0.2)
+    np.testing.assert_allclose(noisy[cls], (0.5 * slow + 0.5 * rate)[cls], atol=1e-6)
+    np.testing.assert_array_equal(noisy[~cls], rate[~cls])
+    assert slow_fuse(src, 300, rate, fine, {**p, "slow_region_noise": 0.1}, noise=0.2) is rate
+    assert slow_fuse(src, 300, rate, None, {**p, "slow_region_noise": 0.5}, noise=0.2) is rate
     # a smooth PatchMatch rate (the windows keep a fixed-pattern spread): the class is off
     flat = np.full((H, W), 0.123, np.float32)
     np.testing.assert_array_equal(

@@ -190,6 +190,17 @@ SLOW_PARAMS: dict[str, Param] = {
         minimum=0.0,
         maximum=1.0,
     ),
+    # the slow class compares a pixel's window with PatchMatch's average and asks a whole
+    # square of long windows, which temporal noise rarely fakes: it stays on up to this level
+    # (REDS' 203 files, 0.07-0.33: +0.15, +0.03, 0; shot noise on disk, fan, car: 0 to +0.05)
+    "slow_region_noise": Param(
+        0.5,
+        "",
+        "slow motion: frame temporal-noise level up to which the slow class stays on when the "
+        "rest of the stage is off (slow_noise)",
+        minimum=0.0,
+        maximum=10.0,
+    ),
     # a fixed-pattern spread (per-pixel gain, dark current) makes the windows' rates rougher
     # than PatchMatch's average of other pixels: 1.4-1.6x on the noisy scene, at most 1.13x
     # on every noiseless scene and REDS file
@@ -437,22 +448,25 @@ def slow_fuse(
     (H, W).
     """
     reach = slow_reach(p)
-    if reach <= 0 or (noise is not None and noise > float(p["slow_noise"])):
+    noisy = noise is not None and noise > float(p["slow_noise"])
+    has_fine = fine is not None and bool(fine.any())
+    if reach <= 0 or (noisy and not (has_fine and noise <= float(p["slow_region_noise"]))):
         return rate
     h, w = rate.shape
     cand = np.ones((h, w), bool) if active is None else active
     slow, half, count = slow_rates(src, center, cand, reach=reach, slack=float(p["slow_slack"]))
     whole = count - 1  # whole intervals between the window's first and last spike
-    take = (half >= int(p["slow_min"])) & (whole >= int(p["slow_intervals"]))
+    # under temporal noise only the slow class below: a still pixel's window ends early there
+    take = (half >= int(p["slow_min"])) & (whole >= int(p["slow_intervals"])) & (not noisy)
     out = np.where(take, slow, rate)
-    if fine is not None and fine.any():
+    if has_fine:
         wgt = np.where(
             (half >= int(p["slow_fine_full"])) & (int(p["slow_fine_full"]) > 0),
             np.float32(1.0),
             np.float32(p["slow_fine_weight"]),
         )
         inner = fine & (half >= int(p["slow_fine_min"])) & (whole >= int(p["slow_fine_intervals"]))
-        wgt = np.where(inner, wgt, np.float32(0.0))
+        wgt = np.where(inner & (not noisy), wgt, np.float32(0.0))
         wgt = _slow_class(slow, rate, half, whole, fine, cand, wgt, p)
         out = np.where(fine, wgt * slow + (1 - wgt) * rate, out)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
