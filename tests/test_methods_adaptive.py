@@ -165,9 +165,10 @@ def test_adaptive_within_a_tenth_of_a_db_of_the_full_pipeline():
         for got in (a, g):
             pa = psnr(gt, to_display(got[k], gain))
             assert abs(pa - pf) <= 0.1, (t, pa, pf)
-        # outside the fine mask both are the same scaled TFP
+        # outside the fine mask both are the same scaled TFP, but for PatchMatch's pixels at
+        # its edge, whose weighted matches (pm_h) may differ by the propagation (1e-6)
         out = ~ma["fine"][k]
-        np.testing.assert_array_equal(a[k][out], f[k][out])
+        np.testing.assert_allclose(a[k][out], f[k][out], rtol=1e-5, atol=0)
         both = mg["fine"][k] & mf["fine"][k]
         assert both.sum() >= 0.98 * (mg["fine"][k] | mf["fine"][k]).sum()
 

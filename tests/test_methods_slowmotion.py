@@ -191,9 +191,14 @@ def _psnr(sim, rate, t, mask=None):
 
 def test_cfsr_under_shot_noise_is_left_alone():
     sim = simulate("disk", 900, seed=0, height=96, width=128, noise="shot")
-    on = cfsr.reconstruct(sim.spikes, "cfsr", [450])[0]
     off = cfsr.reconstruct(sim.spikes, "cfsr", [450], slow_reach=0)[0]
-    np.testing.assert_array_equal(on, off)
+    # the windows outside the slow class stand aside
+    gated = cfsr.reconstruct(sim.spikes, "cfsr", [450], slow_region_noise=0.0)[0]
+    np.testing.assert_array_equal(gated, off)
+    # the slow class (up to slow_region_noise) changes fine-region pixels only
+    on, masks = cfsr.reconstruct(sim.spikes, "cfsr", [450], return_masks=True)
+    out = ~masks["fine"][0]
+    np.testing.assert_array_equal(on[0][out], off[out])
 
 
 @pytest.mark.parametrize("scene", ["vibrate", "drift"])
