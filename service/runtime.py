@@ -235,9 +235,14 @@ class Runtime:
         return self.source.describe()
 
     def _keep_source_counters(self, src: Source) -> None:
-        c = src.counters()
-        for k in ("lost_frames", "replay_behind_frames"):
-            self._lost_base[k] = self._lost_base.get(k, 0) + c.get(k, 0)
+        """Keep what a source lost when it is switched away from, by the loss counters its
+        kind declares (a camera package's own names included)."""
+        from cfsr_live.service.status import source_losses
+
+        link, paced = source_losses(src)
+        self._lost_base["lost_frames"] = self._lost_base.get("lost_frames", 0) + link
+        self._lost_base["replay_behind_frames"] = (
+            self._lost_base.get("replay_behind_frames", 0) + paced)
 
     def facility(self, kind):
         src = self.source

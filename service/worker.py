@@ -999,6 +999,11 @@ class WorkerSupervisor:
         return replace(
             st, **{k: getattr(st, k) + base for k, base in self._counter_base.items()})
 
+    def heartbeat_age(self) -> float:
+        """Seconds since the worker's last loop (``inf`` before its first)."""
+        hb = self.slot.stats().heartbeat
+        return (time.monotonic() - hb) if hb else math.inf
+
     def sample(self) -> None:
         """Take one sample of the steps ingested (for :meth:`status`'s ``steps_per_s``);
         called on a clock by the runtime's sampler, so the rate does not depend on how often
@@ -1010,7 +1015,7 @@ class WorkerSupervisor:
         and the figures it measures; ``rate_hz`` is the sensor rate the ingest rate is a
         fraction of."""
         st = self.stats()
-        age = (time.monotonic() - st.heartbeat) if st.heartbeat else math.inf
+        age = self.heartbeat_age()
         first = st.first_frame_since
         steps_per_s = self._ingest.rate()
         return WorkerReport(

@@ -442,6 +442,7 @@ def test_readyz_is_false_when_a_streaming_source_makes_no_frame(monkeypatch):
     from fastapi.testclient import TestClient
 
     from cfsr_live.service.routers import health
+    from cfsr_live.service.schema import WorkerCounters
 
     class W:
         alive = True
@@ -452,8 +453,11 @@ def test_readyz_is_false_when_a_streaming_source_makes_no_frame(monkeypatch):
             def is_set() -> bool:
                 return True
 
-        def stats(self) -> dict:
-            return {"heartbeat_age_s": 0.1, "frames_out": self.frames}
+        def heartbeat_age(self) -> float:
+            return 0.1
+
+        def stats(self) -> WorkerCounters:
+            return WorkerCounters(frames_out=int(self.frames))
 
     class A:
         running = True

@@ -64,11 +64,11 @@ def _no_frame_for(request: Request, rt, frames_out: float) -> float:
             f"within {READY_HEARTBEAT_S:g} s and publishes frames of what streams in")
 async def readyz(request: Request, response: Response, rt: RuntimeDep) -> dict:
     w = rt.worker
-    st = w.stats() if w else {}
-    age = st.get("heartbeat_age_s", math.inf)
+    age = w.heartbeat_age() if w else math.inf
     fresh = age <= READY_HEARTBEAT_S
     streaming = bool(rt.acq and rt.acq.running)
-    stalled = _no_frame_for(request, rt, float(st.get("frames_out", 0.0))) if streaming else 0.0
+    frames_out = w.stats().frames_out if w else 0
+    stalled = _no_frame_for(request, rt, float(frames_out)) if streaming else 0.0
     max_fps = getattr(getattr(rt, "config", None), "max_fps", None) or 1.0
     frame_limit = max(READY_FRAME_S, 3.0 / max_fps)
     ok = bool(w and w.alive and w.ready.is_set() and fresh and streaming
