@@ -103,27 +103,12 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     cw = raw.shape[2]
     nw = n_words(lo, hi)
     side = max(thr - 1, 0)  # spikes a fast pixel needs beyond each center's interval
-    # per center: word and bit mask of the steps c + 1, c_lo and c_hi (ranks = spikes before)
-    qs = np.empty((kc, 3), np.int64)
-    ms = np.empty((kc, 3), np.uint64)
     one = np.uint64(1)
-    for kk in range(kc):
-        cc = centers[kk]
-        c_lo, c_hi = search_range(cc, m, n)
-        for j, t in enumerate((cc + 1, c_lo, c_hi)):
-            qs[kk, j] = (t - lo) >> _WORD_SHIFT
-            ms[kk, j] = (one << np.uint64((t - lo) & _WORD_MASK)) - one
+    qs, ms = _center_ranks(centers, m, n, lo)
     q_ip = qs[:, 0].copy()
     m_ip = ms[:, 0].copy()
     uthr = np.uint64(max(thr, 0))
-    # rates (spikes per step) of an interval, and of thr intervals, of d steps: the float32
-    # of the float64 division, as the slow path writes them
-    rec = np.empty(hi - lo + 1, np.float32)
-    rec_t = np.empty(hi - lo + 1, np.float32)
-    rec[0] = rec_t[0] = 0.0
-    for d in range(1, hi - lo + 1):
-        rec[d] = np.float32(1.0 / d)
-        rec_t[d] = thr / d
+    rec, rec_t = _rate_tables(hi - lo, thr)
     for ir in prange(rows.shape[0]):
         yy = rows[ir]
         words = np.empty((cw + ROW_PAD, nw + 1), np.uint64)
@@ -195,18 +180,58 @@ def _pm_kernel(span, centers_, region, raw, tfa):
                 raw[slot[kk], yy, xa:xb] = b_raw[kk, xa:xb]
                 if thr > 0:
                     tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
-        # the columns outside the runs (the frames are not pre-filled: one write per value)
-        fill = np.float32(np.nan)
-        gap = 0
-        for ri in range(runs_at[tr], runs_at[tr + 1] + 1):
-            end = runs[ri, 0] if ri < runs_at[tr + 1] else cw
-            if end > gap:
-                for kk in range(kc):
-                    raw[kk, yy, gap:end] = fill
-                    if thr > 0:
-                        tfa[kk, yy, gap:end] = fill
-            if ri < runs_at[tr + 1]:
-                gap = runs[ri, 1]
+        _fill_outside_runs(raw, tfa, yy, runs[runs_at[tr] : runs_at[tr + 1]], thr > 0)
+
+
+@njit(cache=True)
+def _center_ranks(centers, m, n, lo):  # pragma: no cover - numba
+    """Per center ``c`` of ``centers``: the word index ``qs`` and the bit mask ``ms`` below
+    the steps ``c + 1``, ``c_lo`` and ``c_hi`` of its search range (``max_isi`` = ``m`` in
+    a window of ``n`` steps whose words start at step ``lo``): a rank there is the count of
+    spikes before that step."""
+    kc = centers.shape[0]
+    qs = np.empty((kc, 3), np.int64)
+    ms = np.empty((kc, 3), np.uint64)
+    one = np.uint64(1)
+    for kk in range(kc):
+        cc = centers[kk]
+        c_lo, c_hi = search_range(cc, m, n)
+        for j, t in enumerate((cc + 1, c_lo, c_hi)):
+            qs[kk, j] = (t - lo) >> _WORD_SHIFT
+            ms[kk, j] = (one << np.uint64((t - lo) & _WORD_MASK)) - one
+    return qs, ms
+
+
+@njit(cache=True)
+def _rate_tables(span, thr):  # pragma: no cover - numba
+    """Rates (spikes per step) of one interval, and of ``thr`` intervals, ``d`` steps long
+    for ``d`` in ``0..span`` (0 at ``d = 0``): the float32 of the float64 division, as the
+    per-pixel rules write them, so the table path gives the same numbers."""
+    rec = np.empty(span + 1, np.float32)
+    rec_t = np.empty(span + 1, np.float32)
+    rec[0] = rec_t[0] = 0.0
+    for d in range(1, span + 1):
+        rec[d] = np.float32(1.0 / d)
+        rec_t[d] = thr / d
+    return rec, rec_t
+
+
+@njit(cache=True)
+def _fill_outside_runs(raw, tfa, yy, runs, with_tfa):  # pragma: no cover - numba
+    """NaN in every frame's row ``yy`` outside the column ``runs`` (ascending ``[xa, xb)``
+    pairs of that row): the frames are not pre-filled, so each value is written once."""
+    fill = np.float32(np.nan)
+    cw = raw.shape[2]
+    gap = 0
+    for ri in range(runs.shape[0] + 1):
+        end = runs[ri, 0] if ri < runs.shape[0] else cw
+        if end > gap:
+            for kk in range(raw.shape[0]):
+                raw[kk, yy, gap:end] = fill
+                if with_tfa:
+                    tfa[kk, yy, gap:end] = fill
+        if ri < runs.shape[0]:
+            gap = runs[ri, 1]
 
 
 #: Side (pixels) of the tiles the fine stage skips or works on. 8 rather than 16: the tiles
