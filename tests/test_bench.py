@@ -115,6 +115,11 @@ def test_bench_quick_throughput_json(tmp_path):
     assert d["stride"] == 1 and d["frames"] > 1 and d["ms_per_frame"] > 0
     assert d["speedup"] == pytest.approx(d["isolated_ms_per_frame"] / d["ms_per_frame"])
     assert res["dense"]["cfsr"]["stride"] == 32
+    # the live service's frame rate: a quick run measures CFSR auto and TFP, both publishing
+    live = res["live"]["runs"]
+    assert [(r["method"], r["quality"], r["workers"]) for r in live] == [
+        ("cfsr", "auto", 2), ("tfp", None, 1)], live
+    assert all(r["fps"] > 0 and r["real_time_factor"] > 0 for r in live), live
 
 
 def test_amdahl_parallel_fraction():

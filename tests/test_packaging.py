@@ -156,7 +156,7 @@ def test_live_install_serves_viewer_ws_and_mjpeg(live_install, tmp_path):
 def test_live_install_refuses_to_start_without_its_viewer(live_install, tmp_path):
     bindir = live_install
     r = subprocess.run([str(bindir / "python"), "-c",
-                        "import service.app as a; print(a.viewer_dir())"],
+                        "import cfsr_live.service.app as a; print(a.viewer_dir())"],
                        capture_output=True, text=True, check=True, cwd=tmp_path,
                        env=clean_env(bindir))
     page = Path(r.stdout.strip()) / "index.html"

@@ -306,9 +306,16 @@ def _live(args: argparse.Namespace, bar) -> dict[str, Any]:
         live_throughput = eps[0].load()
     except ImportError as exc:
         return {"error": f"live benchmark unavailable ({exc}): {install_hint('live')}"}
+    quick = {"configs": QUICK_LIVE} if args.quick else {}
     return live_throughput(
-        seconds=6.0 if args.quick else 20.0, progress=lambda s: bar.set_description(s)
+        seconds=6.0 if args.quick else 20.0, progress=lambda s: bar.set_description(s), **quick
     )
+
+
+#: The live runs of a quick benchmark (method, CFSR tier, processes, threads each): CFSR's
+#: default live setting and TFP, a smoke test of the path; the full run measures every tier
+#: and split the live layer lists.
+QUICK_LIVE = (("cfsr", "auto", 2, 1), ("tfp", "full", 1, 1))
 
 
 #: Methods whose cost is measured at 1 and 2 threads (issue 14: scaling stated, not guessed).
