@@ -84,11 +84,9 @@ def test_only_candidates_are_estimated():
     assert np.abs(r[cand] - gt[cand]).max() < 1.0 / 200
 
 
-def test_fuse_rules():
-    sim = simulate("vibrate", 600, seed=0, height=H, width=W)
-    src = PackedWindow.from_frames(sim.spikes)
-    rate = np.full((H, W), 0.123, np.float32)
-    p = {
+#: the stage's window rules as the fusion tests set them (reach, slack, the two thresholds
+#: outside and inside the fine mask, the fine weight; no noise)
+_WINDOW_RULES = {
         "slow_reach": 128,
         "slow_slack": 1.0,
         "slow_min": 8,
@@ -98,9 +96,15 @@ def test_fuse_rules():
         "slow_fine_weight": 0.5,
         "slow_fine_full": 0,
         "slow_noise": 0.0,
-        "slow_region_weight": 0.0,  # the slow class: test_slow_class
-        "slow_region_noise": 0.0,
-    }
+}
+
+
+def test_fuse_rules():
+    sim = simulate("vibrate", 600, seed=0, height=H, width=W)
+    src = PackedWindow.from_frames(sim.spikes)
+    rate = np.full((H, W), 0.123, np.float32)
+    p = {**_WINDOW_RULES, "slow_region_weight": 0.0,  # the slow class: test_slow_class
+         "slow_region_noise": 0.0}
     assert slow_fuse(src, 300, rate, None, {**p, "slow_reach": 0}) is rate
     # temporal noise breaks the exact bounds: the stage stands aside
     assert slow_fuse(src, 300, rate, None, p, noise=0.2) is rate
@@ -127,24 +131,9 @@ def test_fuse_rules():
 def test_slow_class():
     sim = simulate("vibrate", 600, seed=0, height=H, width=W)
     src = PackedWindow.from_frames(sim.spikes)
-    p = {
-        "slow_reach": 128,
-        "slow_slack": 1.0,
-        "slow_min": 8,
-        "slow_intervals": 4,
-        "slow_fine_min": 32,
-        "slow_fine_intervals": 12,
-        "slow_fine_weight": 0.5,
-        "slow_fine_full": 0,
-        "slow_noise": 0.0,
-        "slow_region": 9,
-        "slow_region_half": 16,
-        "slow_region_share": 0.9,
-        "slow_region_intervals": 6,
-        "slow_region_weight": 0.5,
-        "slow_rough": 1.3,
-        "slow_region_noise": 0.0,
-    }
+    p = {**_WINDOW_RULES, "slow_region": 9, "slow_region_half": 16, "slow_region_share": 0.9,
+         "slow_region_intervals": 6, "slow_region_weight": 0.5, "slow_rough": 1.3,
+         "slow_region_noise": 0.0}
     everywhere = np.ones((H, W), bool)
     slow, half, count = slow_rates(src, 300, everywhere, reach=128)
     fine = np.zeros((H, W), bool)
@@ -201,15 +190,21 @@ def test_cfsr_under_shot_noise_is_left_alone():
     np.testing.assert_array_equal(on[0][out], off[out])
 
 
+def _with_and_without(sim, t: int = 450, **off: float):
+    """PSNR (whole frame, motion region) of CFSR at ``t`` as it is and with ``off`` set."""
+    m = sim.motion_mask(t)
+    out = []
+    for params in ({}, off):
+        rate = cfsr.reconstruct(sim.spikes, "cfsr", [t], **params)[0]
+        out.append((_psnr(sim, rate, t), _psnr(sim, rate, t, m)))
+    return out
+
+
 @pytest.mark.parametrize("scene", ["vibrate", "drift"])
 def test_cfsr_with_slow_windows_beats_without_on_slow_motion(scene):
-    sim = simulate(scene, 900, seed=0, height=96, width=128)
-    t = 450
-    on = cfsr.reconstruct(sim.spikes, "cfsr", [t])[0]
-    off = cfsr.reconstruct(sim.spikes, "cfsr", [t], slow_reach=0)[0]
-    m = sim.motion_mask(t)
-    assert _psnr(sim, on, t) > _psnr(sim, off, t) + 1.0
-    assert _psnr(sim, on, t, m) > _psnr(sim, off, t, m) + 1.0
+    on, off = _with_and_without(simulate(scene, 900, seed=0, height=96, width=128),
+                                slow_reach=0)
+    assert on[0] > off[0] + 1.0 and on[1] > off[1] + 1.0
 
 
 @pytest.mark.parametrize(
@@ -218,13 +213,10 @@ def test_cfsr_with_slow_windows_beats_without_on_slow_motion(scene):
 def test_slow_class_pays_where_the_fine_region_moves_slowly(scene, opts):
     # the fine region under sub-pixel motion: PatchMatch's average blurs it (+2.5 and +1.2 dB
     # measured in the motion region at this size)
-    sim = simulate(make_scene(scene, height=96, width=128, **opts), 900, seed=0)
-    t = 450
-    on = cfsr.reconstruct(sim.spikes, "cfsr", [t])[0]
-    off = cfsr.reconstruct(sim.spikes, "cfsr", [t], slow_region_weight=0.0)[0]
-    m = sim.motion_mask(t)
-    assert _psnr(sim, on, t) > _psnr(sim, off, t) + 0.5
-    assert _psnr(sim, on, t, m) > _psnr(sim, off, t, m) + 0.5
+    on, off = _with_and_without(
+        simulate(make_scene(scene, height=96, width=128, **opts), 900, seed=0),
+        slow_region_weight=0.0)
+    assert on[0] > off[0] + 0.5 and on[1] > off[1] + 0.5
 
 
 def test_paper_presets_run_without_the_stage():

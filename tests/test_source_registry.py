@@ -71,17 +71,22 @@ class FakeCamKind(SourceKind):
 '''
 
 
+def _registry_with(monkeypatch, extra: EntryPoint) -> None:
+    """The registry as it loads with the installed kinds and ``extra`` (restored after)."""
+    installed = entry_points(group=sources.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(sources, "entry_points", lambda group: [*installed, extra])
+    monkeypatch.setattr(sources, "_KINDS", {})
+    monkeypatch.setattr(sources, "_loaded", False)
+
+
 @pytest.fixture
 def fakecam(tmp_path, monkeypatch):
     """The registry as it is with a camera package installed beside cfsr (restored after)."""
     (tmp_path / "cfsr_fakecam_plugin.py").write_text(textwrap.dedent(PLUGIN))
     monkeypatch.syspath_prepend(str(tmp_path))
-    installed = entry_points(group=sources.ENTRY_POINT_GROUP)
-    plugin = EntryPoint(name="fakecam", value="cfsr_fakecam_plugin:FakeCamKind",
-                        group=sources.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(sources, "entry_points", lambda group: [*installed, plugin])
-    monkeypatch.setattr(sources, "_KINDS", {})
-    monkeypatch.setattr(sources, "_loaded", False)
+    _registry_with(monkeypatch, EntryPoint(name="fakecam",
+                                           value="cfsr_fakecam_plugin:FakeCamKind",
+                                           group=sources.ENTRY_POINT_GROUP))
     yield
     sys.modules.pop("cfsr_fakecam_plugin", None)
 
@@ -103,12 +108,8 @@ def test_register_twice_is_an_error(fakecam):
 
 
 def test_broken_plugin_is_skipped_and_said(monkeypatch, caplog):
-    installed = entry_points(group=sources.ENTRY_POINT_GROUP)
-    broken = EntryPoint(name="broken", value="cfsr_no_such_module_xyz:Kind",
-                        group=sources.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(sources, "entry_points", lambda group: [*installed, broken])
-    monkeypatch.setattr(sources, "_KINDS", {})
-    monkeypatch.setattr(sources, "_loaded", False)
+    _registry_with(monkeypatch, EntryPoint(name="broken", value="cfsr_no_such_module_xyz:Kind",
+                                           group=sources.ENTRY_POINT_GROUP))
     with caplog.at_level(logging.WARNING, logger="cfsr.sources"):
         names = [k.name for k in sources.kinds()]
     assert "broken" not in names and "demo" in names
