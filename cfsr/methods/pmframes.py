@@ -175,11 +175,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
                         continue
                     a, b = grow_span(tv, f0, f1, ip, cc, thr)
                     b_tfa[kk, x] = (b - a) / (tv[b] - tv[a])
-            # the row's frames, one contiguous copy per center
-            for kk in range(kc):
-                raw[slot[kk], yy, xa:xb] = b_raw[kk, xa:xb]
-                if thr > 0:
-                    tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
+            _store_run(raw, tfa, slot, yy, xa, xb, b_raw, b_tfa, thr > 0)
         _fill_outside_runs(raw, tfa, yy, runs[runs_at[tr] : runs_at[tr + 1]], thr > 0)
 
 
@@ -214,6 +210,16 @@ def _rate_tables(span, thr):  # pragma: no cover - numba
         rec[d] = np.float32(1.0 / d)
         rec_t[d] = thr / d
     return rec, rec_t
+
+
+@njit(cache=True)
+def _store_run(raw, tfa, slot, yy, xa, xb, b_raw, b_tfa, with_tfa):  # pragma: no cover - numba
+    """The run ``[xa, xb)`` of row ``yy`` into the frames: one contiguous copy per center
+    (center ``kk``'s rates from row ``kk`` of ``b_raw``/``b_tfa`` into frame ``slot[kk]``)."""
+    for kk in range(slot.shape[0]):
+        raw[slot[kk], yy, xa:xb] = b_raw[kk, xa:xb]
+        if with_tfa:
+            tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
 
 
 @njit(cache=True)
