@@ -13,14 +13,17 @@ from cfsr.spikes import SpikeRecording, as_recording
 __all__ = ["reconstruct", "reconstruct_outputs", "check_times"]
 
 
-def check_times(times: Iterable[int] | int, n_frames: int) -> list[int]:
-    """Validate output steps against a recording of ``n_frames`` steps."""
+def check_times(
+    times: Iterable[int] | int, n_frames: int, what: str = "the recording"
+) -> list[int]:
+    """Validate output steps against ``what`` (a recording, a simulated run) of ``n_frames``
+    steps: at least one, each in ``0..n_frames - 1``."""
     ts = [int(times)] if np.isscalar(times) else [int(t) for t in times]  # type: ignore[arg-type]
     if not ts:
         raise ValueError("no output times given")
     bad = [t for t in ts if not 0 <= t < n_frames]
     if bad:
-        raise ValueError(f"times {bad} outside the recording (0..{n_frames - 1} steps)")
+        raise ValueError(f"times {bad} outside {what} (0..{n_frames - 1} steps)")
     return ts
 
 

@@ -289,13 +289,10 @@ def _scene_names(scenes: Sequence[str] | str | None) -> list[str]:
 
 def _sim_times(times: Sequence[int] | None, steps: int) -> list[int]:
     """Output steps inside a simulated run of ``steps`` (default :func:`default_times`)."""
-    ts = default_times(steps) if times is None else [int(t) for t in times]
-    if not ts:
-        raise ValueError("no output times given")
-    bad = [t for t in ts if not 0 <= t < steps]
-    if bad:
-        raise ValueError(f"times {bad} outside the simulated run (0..{steps - 1} steps)")
-    return ts
+    from cfsr.api import check_times
+
+    return check_times(default_times(steps) if times is None else times, steps,
+                       "the simulated run")
 
 
 def _simulated(scene: str, steps: int, ts: Sequence[int], seed: int, height: int, width: int,
