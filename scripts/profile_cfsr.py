@@ -24,8 +24,8 @@ from cfsr.streaming import StreamingReconstructor
 
 STAGES = (
     "_history",
-    "_static_kernel",
-    "_dynamic_kernel",
+    "static_kernel",
+    "dynamic_kernel",
     "atsr_fuse",
     "_mog_objects",
     "_future_objects",

@@ -156,13 +156,13 @@ def test_a_carried_output_scans_only_its_new_history_frames(scenes, monkeypatch)
     from cfsr.streaming import StreamingReconstructor
 
     scanned = []  # history frames (and the span at t) each scan computes
-    kernel = cfsr_fine._static_kernel
+    kernel = cfsr_fine.static_kernel
 
     def spy(src, union, spans, *rest):
         scanned.append(len(spans.cents))
         return kernel(src, union, spans, *rest)
 
-    monkeypatch.setattr(cfsr_fine, "_static_kernel", spy)
+    monkeypatch.setattr(cfsr_fine, "static_kernel", spy)
     rec, *_ = scenes["disk"]
     sr = StreamingReconstructor("cfsr", rec.layout, slack=STEPS)
     sr.push(rec.packed(0, STEPS), 0)

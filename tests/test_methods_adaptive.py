@@ -30,6 +30,11 @@ def _params(**kw):
     return resolve_params(get_method("cfsr"), kw)
 
 
+def _tfi_at_t(hist, src, c, p):
+    """The TFI at t of a history scan: its own when its second pass ran, else computed."""
+    return cf._tfi_at(src, c, p["max_isi"]) if hist.tfi is None else hist.tfi
+
+
 def _random_window(rng, n, h=9, w=13):
     rate = rng.uniform(0.01, 0.95, (1, h, w))
     return (rng.random((n, h, w)) < rate).astype(np.uint8)
@@ -56,15 +61,16 @@ def test_history_scan_equals_stand_alone_kernels(trial):
         mog_estimator=("tfp", "isi")[trial % 4 == 3],
     )
     c = int(rng.integers(0, n))
-    got = cf._history(PackedWindow.from_frames(s), c, p)
+    src = PackedWindow.from_frames(s)
+    got = cf._history(src, c, p)
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     cs = [x for x in cs if x >= 0]
     # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
     hp = {**p, "tfp_window": p["mog_window"], "static_span": 0, "distinction": "isi_set"}
     rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
-    np.testing.assert_array_equal(got["rates"], rates)
-    np.testing.assert_array_equal(got["coarse"], masks[-1])
-    np.testing.assert_array_equal(got["tfi"](), tfi_rate(s, c, max_isi=p["max_isi"]))
+    np.testing.assert_array_equal(got.rates, rates)
+    np.testing.assert_array_equal(got.coarse, masks[-1])
+    np.testing.assert_array_equal(_tfi_at_t(got, src, c, p), tfi_rate(s, c, max_isi=p["max_isi"]))
     want_tfp = static_rate(
         s,
         c,
@@ -73,9 +79,9 @@ def test_history_scan_equals_stand_alone_kernels(trial):
         estimator=p["static_estimator"],
         max_isi=p["max_isi"],
     )
-    np.testing.assert_array_equal(got["tfp"], want_tfp)
+    np.testing.assert_array_equal(got.tfp, want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
-    np.testing.assert_array_equal(got["daisi"], want_d)
+    np.testing.assert_array_equal(got.daisi, want_d)
 
 
 def test_mog_only_where_the_history_varies_finds_the_same_objects():
@@ -186,14 +192,14 @@ def test_static_tiles_take_their_frame_at_t_as_history_and_no_daisi():
     active[8:56, 20:76] = True
     whole = cf._history(src, c, p)
     tiled = cf._history(src, c, p, active)
-    np.testing.assert_array_equal(tiled["tfp"], whole["tfp"])
-    np.testing.assert_array_equal(tiled["daisi"][active], whole["daisi"][active])
-    assert not tiled["daisi"][~active].any() and whole["daisi"][~active].any()
-    assert whole["coarse"][active].any()  # a moving scene: the second pass ran
-    np.testing.assert_array_equal(tiled["coarse"], whole["coarse"] & active)
-    np.testing.assert_array_equal(tiled["tfi"](), whole["tfi"]())
-    rates = tiled["rates"]
-    np.testing.assert_array_equal(rates[-1], whole["rates"][-1])  # exact: it sets MOG's gain
+    np.testing.assert_array_equal(tiled.tfp, whole.tfp)
+    np.testing.assert_array_equal(tiled.daisi[active], whole.daisi[active])
+    assert not tiled.daisi[~active].any() and whole.daisi[~active].any()
+    assert whole.coarse[active].any()  # a moving scene: the second pass ran
+    np.testing.assert_array_equal(tiled.coarse, whole.coarse & active)
+    np.testing.assert_array_equal(_tfi_at_t(tiled, src, c, p), _tfi_at_t(whole, src, c, p))
+    rates = tiled.rates
+    np.testing.assert_array_equal(rates[-1], whole.rates[-1])  # exact: it sets MOG's gain
     still = rates[:, ~active]
     np.testing.assert_array_equal(still, np.broadcast_to(rates[-1][~active], still.shape))
 
@@ -240,16 +246,17 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
         raise AssertionError("the second pass ran on a static window")
 
     with monkeypatch.context() as mp:
-        mp.setattr(cf, "_dynamic_kernel", second_pass)
-        got = cf._history(PackedWindow.from_frames(s), c, p)
-    assert not got["coarse"].any()
+        mp.setattr(cf, "dynamic_kernel", second_pass)
+        src = PackedWindow.from_frames(s)
+        got = cf._history(src, c, p)
+    assert not got.coarse.any()
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
     hp = {**p, "tfp_window": p["mog_window"], "static_span": 0, "distinction": "isi_set"}
     rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
     assert not masks.any()
-    np.testing.assert_array_equal(got["rates"], rates)
-    np.testing.assert_array_equal(got["tfi"](), tfi_rate(s, c, max_isi=p["max_isi"]))
+    np.testing.assert_array_equal(got.rates, rates)
+    np.testing.assert_array_equal(_tfi_at_t(got, src, c, p), tfi_rate(s, c, max_isi=p["max_isi"]))
     want_tfp = static_rate(
         s,
         c,
@@ -258,9 +265,9 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
         estimator=span_estimator(p),  # the span rule; fine_stage applies the steady check
         max_isi=p["max_isi"],
     )
-    np.testing.assert_array_equal(got["tfp"], want_tfp)
+    np.testing.assert_array_equal(got.tfp, want_tfp)
     want_d = daisi_strength(s, c, span=p["daisi_span"], max_isi=p["max_isi"])
-    np.testing.assert_array_equal(got["daisi"], want_d)
+    np.testing.assert_array_equal(got.daisi, want_d)
 
 
 def test_pm_tiles_cover_the_search_margin_of_every_fine_pixel_and_skip_the_rest():

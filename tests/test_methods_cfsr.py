@@ -367,7 +367,7 @@ def test_future_background_splits_ghosts_from_objects():
     """Eq. 9 against the background after t (``mog_sides = both``): a pixel a mover left
     before t matches it (a ghost), a pixel the mover covers at t does not."""
     from cfsr._words import PackedWindow
-    from cfsr.methods.cfsr_fine import _future_objects, _Sharp
+    from cfsr.methods.cfsr_fine import CfsrSettings, _future_objects, _Sharp
     from cfsr.methods.registry import get_method, resolve_params
 
     n, c = 1000, 600
@@ -377,7 +377,7 @@ def test_future_background_splits_ghosts_from_objects():
     src = PackedWindow.from_frames(if_spikes(inten, n, v0=0.5))
     rate = np.array([[0.1, 0.4]], np.float32)  # rate at t: 51 and 204 levels at gain 0.5
     sharp = _Sharp(rate, np.ones((1, 2), np.int32), rate, 16)
-    p = resolve_params(get_method("cfsr"))
+    p = CfsrSettings.of(resolve_params(get_method("cfsr")))
     for adaptive in (True, False):
         keep = _future_objects(src, c, np.ones((1, 2), bool), sharp, 0.5, 10.0, adaptive, p, 12)
         assert keep.tolist() == [[False, True]]
@@ -429,3 +429,56 @@ def test_paper_presets_keep_eq9_on_the_past():
     assert ms["presets"]["paper"]["mog_sides"] == "past"
     assert ms["presets"]["simulated"]["mog_sides"] == "past"
     assert ms["params"]["mog_match"]["range"] and ms["params"]["mog_span"]["range"]
+
+
+def test_every_method_reads_typed_settings_holding_exactly_its_parameters():
+    """One source of names: each method's settings type has one field per Param of its
+    table, typed as the default; built from resolved values, it holds them as they are."""
+    import dataclasses
+
+    from cfsr.methods.registry import (
+        Method,
+        Settings,
+        get_method,
+        methods,
+        register,
+        resolve_params,
+    )
+
+    for name in methods():
+        m = get_method(name)
+        assert m.settings is not None, name
+        fields = {f.name: f.type for f in dataclasses.fields(m.settings)}
+        assert set(fields) == set(m.params), name
+        for k, prm in m.params.items():
+            assert fields[k] == type(prm.default).__name__, (name, k)
+        p = resolve_params(m)
+        s = m.settings.of(p)
+        assert m.settings.of(s) is s
+        if name != "cfsr":  # cfsr's settings take its quality tier (test_cfsr_tiers)
+            assert dataclasses.asdict(s) == p
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            s.__setattr__(next(iter(m.params)), 0)
+        with pytest.raises(KeyError):
+            m.settings.of({})  # a partial set is resolved first, never guessed
+
+    @dataclasses.dataclass(frozen=True)
+    class Short(Settings):
+        max_isi: int
+
+    tfi = get_method("tfi")
+    with pytest.raises(ValueError, match="settings fields differ"):
+        register(Method("tfi-copy", "", {**tfi.params, "extra": tfi.params["max_isi"]},
+                        tfi.window, tfi.compute, settings=Short))
+
+
+def test_cfsr_settings_take_the_quality_tier():
+    from cfsr.methods.cfsr_fine import QUALITY_TIERS, CfsrSettings, effective_params
+    from cfsr.methods.registry import get_method, resolve_params
+
+    p = resolve_params(get_method("cfsr"), {"quality": "fast", "pm_radius": 12})
+    s = CfsrSettings.of(p)
+    assert s.mog_frames == QUALITY_TIERS["fast"]["mog_frames"]
+    assert s.pm_radius == 12  # set by hand: kept
+    assert s == CfsrSettings.of(effective_params(p))
+    assert s.coarse.dynamic_estimator == "tfi" and s.coarse.T == s.T

@@ -7,7 +7,7 @@ import pytest
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods.slowmotion import HALVES, slow_class, slow_fuse, slow_rates
+from cfsr.methods.slowmotion import HALVES, SLOW_PARAMS, slow_class, slow_fuse, slow_rates
 from cfsr.simulate import make_scene, simulate
 
 H, W = 48, 64
@@ -85,17 +85,18 @@ def test_only_candidates_are_estimated():
 
 
 #: the stage's window rules as the fusion tests set them (reach, slack, the two thresholds
-#: outside and inside the fine mask, the fine weight; no noise)
+#: outside and inside the fine mask, the fine weight; no noise), the others at their defaults
 _WINDOW_RULES = {
-        "slow_reach": 128,
-        "slow_slack": 1.0,
-        "slow_min": 8,
-        "slow_intervals": 4,
-        "slow_fine_min": 32,
-        "slow_fine_intervals": 12,
-        "slow_fine_weight": 0.5,
-        "slow_fine_full": 0,
-        "slow_noise": 0.0,
+    **{k: prm.default for k, prm in SLOW_PARAMS.items()},
+    "slow_reach": 128,
+    "slow_slack": 1.0,
+    "slow_min": 8,
+    "slow_intervals": 4,
+    "slow_fine_min": 32,
+    "slow_fine_intervals": 12,
+    "slow_fine_weight": 0.5,
+    "slow_fine_full": 0,
+    "slow_noise": 0.0,
 }
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["row_slab", "row_gather", "pixel_times"]
+__all__ = ["row_slab", "row_gather", "pixel_times", "candidate_run"]
 
 
 @njit(cache=True, inline="always")
@@ -41,3 +41,18 @@ def pixel_times(slab, x, lo, times):  # pragma: no cover - numba
             times[ns] = lo + t
             ns += 1
     return ns
+
+
+@njit(cache=True, inline="always")
+def candidate_run(cand, i):  # pragma: no cover - numba
+    """``(a, b)``: row ``i`` of the bool mask ``cand`` from its first candidate column ``a``
+    to one past its last ``b``; ``(-1, -1)`` for a row without one (the span a kernel that
+    gathers the row's spike words once reads)."""
+    a = -1
+    b = -1
+    for x in range(cand.shape[1]):
+        if cand[i, x]:
+            if a < 0:
+                a = x
+            b = x + 1
+    return a, b

@@ -18,7 +18,7 @@ A window with no dynamic pixel needs only TFP: the TFI stage is skipped and the 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -26,7 +26,7 @@ import numpy as np
 from cfsr._words import PackedWindow
 from cfsr.methods.atsr import atsr_fuse
 from cfsr.methods.distinction import coarse_masks, distinct_isi_counts_packed
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
 from cfsr.methods.steady import DISTINCTIONS, check_static, noise_level, steadiness, steady_mask
 from cfsr.methods.tfi import tfi_rate_packed, tfi_rates
 from cfsr.methods.tfp import static_rate, static_rate_packed, tfp_rate, tfp_rate_packed, tfp_span
@@ -40,12 +40,10 @@ __all__ = ["csr_frames", "csr_frame_packed", "CSR_PARAMS", "csr_window", "static
 #: docs/methods.md; the paper's values are in the ``paper`` preset). Window-like parameters
 #: reach at most half the ring's limit each, so that any combination fits (before + after).
 CSR_PARAMS: dict[str, Param] = {
-    "T": Param(
+    "T": Param.steps(
         300,
-        "steps",
         "coarse distinction window T before t (Eq. 5)",
         minimum=2,
-        maximum=MAX_WINDOW_STEPS // 2,
     ),
     # distinct ISIs in T steps sum to at most T, so there are fewer than sqrt(2 T) <= 283
     "theta": Param(
@@ -55,23 +53,11 @@ CSR_PARAMS: dict[str, Param] = {
         minimum=1,
         maximum=1000,
     ),
-    "tfp_window": Param(
-        160,
-        "steps",
-        "TFP window w for the static region (Eq. 4)",
-        minimum=1,
-        maximum=MAX_WINDOW_STEPS // 2,
-    ),
+    "tfp_window": Param.steps(160, "TFP window w for the static region (Eq. 4)"),
     "tfp_mode": Param(
         "trailing", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
     ),
-    "max_isi": Param(
-        200,
-        "steps",
-        "TFI search range each side of t (Eq. 3)",
-        minimum=1,
-        maximum=MAX_WINDOW_STEPS // 2,
-    ),
+    "max_isi": Param.steps(200, "TFI search range each side of t (Eq. 3)"),
     # steady by default: the isi rule where t's own interval agrees with it, the TFI where it
     # does not (a mover the masks miss is not smeared); isi and the paper's tfp are choices
     "static_estimator": Param(
@@ -97,11 +83,9 @@ CSR_PARAMS: dict[str, Param] = {
         "(distinct ISIs in T >= theta, Eq. 5-6)",
         choices=DISTINCTIONS,
     ),
-    "steady_radius": Param(
+    "steady_radius": Param.steps(
         24,
-        "steps",
         "steady: intervals containing a step within this many steps of t are compared",
-        minimum=1,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
     "steady_tol": Param(
@@ -129,12 +113,10 @@ CSR_PARAMS: dict[str, Param] = {
     ),
     # 0 keeps the TFP window; a longer span sees more intervals (more precise for dark static
     # pixels, more smear on a mover the distinction misses)
-    "static_span": Param(
+    "static_span": Param.steps(
         0,
-        "steps",
         "isi: span of the static estimate, placed as tfp_mode (0: tfp_window)",
         minimum=0,
-        maximum=MAX_WINDOW_STEPS // 2,
     ),
 }
 
@@ -181,56 +163,106 @@ CSR_ONLY_PARAMS: dict[str, Param] = {
         "rule over dynamic_span centred steps)",
         choices=("steady", "tfi"),
     ),
-    "dynamic_span": Param(
+    "dynamic_span": Param.steps(
         16,
-        "steps",
         "steady: centred span of the dynamic region's estimate",
         minimum=2,
-        maximum=MAX_WINDOW_STEPS // 2,
     ),
     "tfp_window": replace(CSR_PARAMS["tfp_window"], default=32),
     "tfp_mode": replace(CSR_PARAMS["tfp_mode"], default="centred"),
 }
 
 
-def static_length(p: Mapping[str, Any]) -> int:
+@dataclass(frozen=True)
+class CoarseSettings(Settings):
+    """The coarse stage's parameters (:data:`CSR_PARAMS`: meaning, unit and range), shared by
+    ``csr`` (:class:`CsrSettings`) and ``cfsr``."""
+
+    T: int  #: distinction window before t (Eq. 5), steps
+    theta: int  #: distinct ISI values that make a pixel dynamic (Eq. 6)
+    tfp_window: int  #: TFP window w (Eq. 4), steps
+    tfp_mode: str  #: trailing or centred
+    max_isi: int  #: TFI search range each side of t (Eq. 3), steps
+    static_estimator: str  #: one of STATIC_CHOICES
+    steady_match: float
+    distinction: str  #: one of DISTINCTIONS
+    steady_radius: int  #: steps
+    steady_tol: float
+    steady_noise: float
+    coarse_close: int  #: pixels
+    static_span: int  #: steps (0: tfp_window)
+
+
+@dataclass(frozen=True)
+class CsrSettings(CoarseSettings):
+    """``csr``'s parameters (:data:`CSR_ONLY_PARAMS`): the coarse ones and the dynamic
+    region's estimate."""
+
+    dynamic_estimator: str  #: tfi or steady
+    dynamic_span: int  #: steps
+
+    @classmethod
+    def of(cls, p: Mapping[str, Any] | Settings) -> CsrSettings:
+        """As :meth:`Settings.of`; a parameter set without a dynamic estimator of its own
+        (CFSR's, whose fine stage reconstructs the dynamic region) takes the paper's TFI."""
+        if isinstance(p, cls):
+            return p
+        if isinstance(p, Settings) or "dynamic_estimator" not in p:
+            return tfi_dynamic(CoarseSettings.of(p))
+        return super().of(p)
+
+
+def tfi_dynamic(c: CoarseSettings) -> CsrSettings:
+    """``c``'s coarse parameters with the TFI (Eq. 7) as the dynamic region's estimate."""
+    kept = {f.name: getattr(c, f.name) for f in fields(CoarseSettings)}
+    return CsrSettings(**kept, dynamic_estimator="tfi", dynamic_span=_TFI_SPAN)
+
+
+#: ``dynamic_span`` of :func:`tfi_dynamic` (not read under the TFI)
+_TFI_SPAN = CSR_ONLY_PARAMS["dynamic_span"].default
+
+
+def static_length(p: Mapping[str, Any] | CoarseSettings) -> int:
     """Steps of the static estimate's span: ``static_span`` for ``isi`` when set, else
-    ``tfp_window`` (parameter sets without the keys read as the paper's TFP)."""
-    if p.get("static_estimator", "tfp") in ("isi", "steady") and int(p.get("static_span", 0)) > 0:
-        return int(p["static_span"])
-    return int(p["tfp_window"])
+    ``tfp_window``."""
+    s = CoarseSettings.of(p)
+    if s.static_estimator in ("isi", "steady") and int(s.static_span) > 0:
+        return int(s.static_span)
+    return int(s.tfp_window)
 
 
-def csr_window(p: Mapping[str, Any]) -> tuple[int, int]:
+def csr_window(p: Mapping[str, Any] | CsrSettings) -> tuple[int, int]:
     """Steps before/after t that one CSR frame needs."""
-    w = static_length(p)
-    if p["tfp_mode"] == "trailing":
+    s = CsrSettings.of(p)
+    w = static_length(s)
+    if s.tfp_mode == "trailing":
         tb, ta = w - 1, 0
     else:
         tb, ta = w // 2, w - w // 2 - 1
-    reach = p["max_isi"]  # TFI at t; the steady rules read inside the same range
-    if p.get("dynamic_estimator", "tfi") == "steady":
-        reach = max(reach, p["dynamic_span"] // 2 + 1)
-    return max(p["T"] - 1, tb, reach), max(ta, reach)
+    reach = s.max_isi  # TFI at t; the steady rules read inside the same range
+    if s.dynamic_estimator == "steady":
+        reach = max(reach, s.dynamic_span // 2 + 1)
+    return max(s.T - 1, tb, reach), max(ta, reach)
 
 
-def uses_steady(p: Mapping[str, Any]) -> bool:
+def uses_steady(p: Mapping[str, Any] | CsrSettings) -> bool:
     """Whether a parameter set reads the intervals around t (:mod:`cfsr.methods.steady`)."""
+    s = CsrSettings.of(p)
     return (
-        p.get("distinction", "isi_set") == "steady"
-        or p.get("static_estimator") == "steady"
-        or p.get("dynamic_estimator", "tfi") == "steady"
+        s.distinction == "steady"
+        or s.static_estimator == "steady"
+        or s.dynamic_estimator == "steady"
     )
 
 
-def span_estimator(p: Mapping[str, Any]) -> str:
+def span_estimator(p: Mapping[str, Any] | CoarseSettings) -> str:
     """The span rule under ``static_estimator`` (``steady`` is ``isi`` plus a check)."""
-    est = p.get("static_estimator", "tfp")
+    est = CoarseSettings.of(p).static_estimator
     return "isi" if est == "steady" else est
 
 
 def csr_frames(
-    spikes: np.ndarray, centers: Sequence[int], p: Mapping[str, Any]
+    spikes: np.ndarray, centers: Sequence[int], p: Mapping[str, Any] | CsrSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CSR frames at several indices of one window.
 
@@ -240,8 +272,8 @@ def csr_frames(
         Upright spike frames.
     centers : sequence of int
         Indices into ``spikes`` of the output steps.
-    p : mapping
-        ``T``, ``theta``, ``tfp_window``, ``tfp_mode``, ``max_isi`` (see :data:`CSR_PARAMS`).
+    p : mapping or CsrSettings
+        The coarse parameters (:data:`CSR_PARAMS`; without ``dynamic_estimator``: the TFI).
 
     Returns
     -------
@@ -253,24 +285,25 @@ def csr_frames(
         The static estimates (TFP, Eq. 4, or ``isi``) the static region used, before the
         ATSR scale.
     """
+    s = CsrSettings.of(p)
     cs = [int(c) for c in centers]
-    if uses_steady(p):
-        return _steady_frames(spikes, cs, p)
-    masks = coarse_masks(spikes, cs, p["T"], p["theta"])
+    if uses_steady(s):
+        return _steady_frames(spikes, cs, s)
+    masks = coarse_masks(spikes, cs, s.T, s.theta)
     rates = np.empty(masks.shape, np.float32)
     tfps = np.empty(masks.shape, np.float32)
     # TFI only where a frame has dynamic pixels, all of them from one scan per pixel
     need = [k for k in range(len(cs)) if masks[k].any()]
-    tfis = tfi_rates(spikes, [cs[k] for k in need], max_isi=p["max_isi"])
+    tfis = tfi_rates(spikes, [cs[k] for k in need], max_isi=s.max_isi)
     tfi_of = dict(zip(need, tfis, strict=True))
     for k, c in enumerate(cs):
         tfp = static_rate(
             spikes,
             c,
-            window=static_length(p),
-            mode=p["tfp_mode"],
-            estimator=span_estimator(p),
-            max_isi=p["max_isi"],
+            window=static_length(s),
+            mode=s.tfp_mode,
+            estimator=span_estimator(s),
+            max_isi=s.max_isi,
             tfi=tfi_of.get(k),
         )
         tfps[k] = tfp
@@ -282,7 +315,7 @@ def csr_frames(
 
 
 def _steady_frames(
-    spikes: np.ndarray, cs: Sequence[int], p: Mapping[str, Any]
+    spikes: np.ndarray, cs: Sequence[int], s: CsrSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`csr_frames` when a steady rule is on (:func:`csr_steady`)."""
     src = PackedWindow.from_frames(spikes)
@@ -294,9 +327,9 @@ def _steady_frames(
         rates[k], masks[k], tfps[k] = csr_steady(
             src,
             c,
-            p,
-            coarse=lambda c=c: coarse_masks(spikes, [c], p["T"], p["theta"])[0],
-            tfp=lambda c=c: tfp_rate(spikes, c, window=static_length(p), mode=p["tfp_mode"]),
+            s,
+            coarse=lambda c=c: coarse_masks(spikes, [c], s.T, s.theta)[0],
+            tfp=lambda c=c: tfp_rate(spikes, c, window=static_length(s), mode=s.tfp_mode),
         )
     return rates, masks, tfps
 
@@ -315,7 +348,7 @@ class Steady:
 def steady_parts(
     src: PackedWindow,
     center: int,
-    p: Mapping[str, Any],
+    p: Mapping[str, Any] | CsrSettings,
     *,
     words=None,
     static: bool = True,
@@ -325,32 +358,33 @@ def steady_parts(
     the steady coarse mask, the TFI interval at t, the noise level and the span rules the
     parameters ask for (``static=False``: the caller has the static span rule already;
     ``active``: the pixels outside static tiles, the others' spread taken as 0)."""
+    s = CsrSettings.of(p)
     n = src.n
     spans = []
-    want_static = static and span_estimator(p) == "isi"
-    want_dyn = p.get("dynamic_estimator", "tfi") == "steady"
+    want_static = static and span_estimator(s) == "isi"
+    want_dyn = s.dynamic_estimator == "steady"
     if want_static:
-        spans.append(tfp_span(center, n, static_length(p), p["tfp_mode"]))
+        spans.append(tfp_span(center, n, static_length(s), s.tfp_mode))
     if want_dyn:
-        spans.append(tfp_span(center, n, int(p["dynamic_span"]), "centred"))
+        spans.append(tfp_span(center, n, int(s.dynamic_span), "centred"))
     spread, isi, rates = steadiness(
         src,
         center,
-        radius=p["steady_radius"],
-        max_isi=p["max_isi"],
+        radius=s.steady_radius,
+        max_isi=s.max_isi,
         spans=tuple(spans),
         words=words,
         active=active,
     )
     noise = noise_level(spread)
     mask = None
-    if p.get("distinction", "isi_set") == "steady":
+    if s.distinction == "steady":
         mask = steady_mask(
             spread,
-            tol=p["steady_tol"],
+            tol=s.steady_tol,
             noise=noise,
-            noise_factor=p["steady_noise"],
-            close_size=p["coarse_close"],
+            noise_factor=s.steady_noise,
+            close_size=s.coarse_close,
         )
     return Steady(
         mask,
@@ -362,27 +396,29 @@ def steady_parts(
 
 
 def static_checked(
-    tfp: np.ndarray, isi: np.ndarray, noise: float, p: Mapping[str, Any]
+    tfp: np.ndarray, isi: np.ndarray, noise: float, p: Mapping[str, Any] | CoarseSettings
 ) -> np.ndarray:
     """The static estimate under ``static_estimator``: ``steady`` keeps it only where the
     interval at t agrees (:func:`cfsr.methods.steady.check_static`, tolerance raised to the
     noise level); ``isi`` and ``tfp`` as they are."""
-    if p.get("static_estimator") != "steady":
+    s = CoarseSettings.of(p)
+    if s.static_estimator != "steady":
         return tfp
-    return check_static(tfp, isi, match=steady_match(p, noise))
+    return check_static(tfp, isi, match=steady_match(s, noise))
 
 
-def steady_match(p: Mapping[str, Any], noise: float) -> float:
+def steady_match(p: Mapping[str, Any] | CoarseSettings, noise: float) -> float:
     """The check's relative tolerance: ``steady_match``, raised to ``steady_noise`` times the
     frame's noise level (as the coarse mask's tolerance: a noisy steady pixel's interval at t
     strays from its mean by the same relative amount as its intervals spread)."""
-    return max(float(p["steady_match"]), float(p["steady_noise"]) * noise)
+    s = CoarseSettings.of(p)
+    return max(float(s.steady_match), float(s.steady_noise) * noise)
 
 
 def csr_steady(
     src: PackedWindow,
     center: int,
-    p: Mapping[str, Any],
+    p: Mapping[str, Any] | CsrSettings,
     *,
     coarse: Callable[[], np.ndarray],
     tfp: Callable[[], np.ndarray],
@@ -392,15 +428,16 @@ def csr_steady(
     over ``dynamic_span`` centred steps. ``coarse()`` gives the Eq. 5-6 mask (used under
     ``distinction = isi_set``), ``tfp()`` the window count (``static_estimator = tfp``).
     Returns the rate, the coarse mask and the static estimate."""
-    st = steady_parts(src, center, p)
+    s = CsrSettings.of(p)
+    st = steady_parts(src, center, s)
     mask = coarse() if st.mask is None else st.mask
     tfi = (1.0 / st.isi).astype(np.float32)
-    static = static_checked(tfp() if st.static is None else st.static, st.isi, st.noise, p)
+    static = static_checked(tfp() if st.static is None else st.static, st.isi, st.noise, s)
     if not mask.any():
         return np.clip(static, 0.0, 1.0), mask, static
     dyn = tfi
     if st.dynamic is not None:
-        dyn = check_static(st.dynamic, st.isi, match=steady_match(p, st.noise))
+        dyn = check_static(st.dynamic, st.isi, match=steady_match(s, st.noise))
     return atsr_fuse(dyn, static, mask, tfi=tfi)[0], mask, static
 
 
@@ -410,32 +447,33 @@ def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) 
 
 
 def csr_frame_packed(
-    packed: np.ndarray, layout: Any, center: int, p: Mapping[str, Any]
+    packed: np.ndarray, layout: Any, center: int, p: Mapping[str, Any] | CsrSettings
 ) -> tuple[np.ndarray, np.ndarray]:
     """One CSR frame and its coarse mask from packed frames: the same numbers as
     :func:`csr_frames`, without unpacking the window (the live path's budget)."""
-    if uses_steady(p):
+    s = CsrSettings.of(p)
+    if uses_steady(s):
         rate, mask, _ = csr_steady(
             PackedWindow.from_packed(packed, layout),
             center,
-            p,
-            coarse=lambda: distinct_isi_counts_packed(packed, layout, center, p["T"])
-            >= int(p["theta"]),
+            s,
+            coarse=lambda: distinct_isi_counts_packed(packed, layout, center, s.T)
+            >= int(s.theta),
             tfp=lambda: tfp_rate_packed(
-                packed, layout, center, window=static_length(p), mode=p["tfp_mode"]
+                packed, layout, center, window=static_length(s), mode=s.tfp_mode
             ),
         )
         return rate, mask
-    mask = distinct_isi_counts_packed(packed, layout, center, p["T"]) >= int(p["theta"])
-    tfi = tfi_rate_packed(packed, layout, center, max_isi=p["max_isi"]) if mask.any() else None
+    mask = distinct_isi_counts_packed(packed, layout, center, s.T) >= int(s.theta)
+    tfi = tfi_rate_packed(packed, layout, center, max_isi=s.max_isi) if mask.any() else None
     tfp = static_rate_packed(
         packed,
         layout,
         center,
-        window=static_length(p),
-        mode=p["tfp_mode"],
-        estimator=span_estimator(p),
-        max_isi=p["max_isi"],
+        window=static_length(s),
+        mode=s.tfp_mode,
+        estimator=span_estimator(s),
+        max_isi=s.max_isi,
         tfi=tfi,
     )
     if tfi is None:
@@ -459,5 +497,6 @@ register(
         masks=("coarse",),
         presets={k: {**v, "dynamic_estimator": "tfi"} for k, v in CSR_PRESETS.items()},
         reference="CFSR paper Eq. 3-7 (coarse stage)",
+        settings=CsrSettings,
     )
 )

@@ -23,12 +23,14 @@ from cfsr._isi import isi_from_times, search_range
 from cfsr._words import (
     ROW_PAD,
     PackedWindow,
+    Words,
     n_words,
     popcount,
     prefix_counts,
     row_words,
     word_spikes,
 )
+from cfsr.methods._cfsr_params import CfsrSettings
 from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "match_reach", "pm_tiles", "pm_frames", "isi_from_times"]
@@ -45,15 +47,6 @@ def _rank(words, k, pre, q, mask):  # pragma: no cover - numba
     """Spikes of word row ``k`` before the step at bit ``mask`` (the bits below it set) of
     word ``q``, from the row's prefix counts ``pre``."""
     return pre[q] + np.int64(popcount(words[k, q] & mask))
-
-
-class _Span(NamedTuple):
-    """The packed window and the steps ``[lo, hi)`` whose spike words are read."""
-
-    packed: np.ndarray  #: uint8: the window's packed frames (:class:`PackedWindow`)
-    geo: np.ndarray  #: int64: their geometry (:class:`PackedWindow`)
-    lo: int
-    hi: int
 
 
 class _Centers(NamedTuple):
@@ -83,7 +76,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     frame ``slot[k]``) on the crop at ``(y0, x0)``, only on the crop rows ``rows`` and, in
     each, on the column runs ``runs[runs_at[i]:runs_at[i + 1]]`` of its tile row ``i``; the
     rest of those rows takes NaN (the other rows are the caller's)
-    (``span``, ``centers_`` and ``region``: :class:`_Span`, :class:`_Centers`,
+    (``span``, ``centers_`` and ``region``: :class:`~cfsr._words.Words`, :class:`_Centers`,
     :class:`_Region`; ``m`` is ``max_isi``, ``thr`` the guide's intervals).
 
     Per pixel, the spike indices each center needs (last spike ``<= c``, first spikes
@@ -301,7 +294,7 @@ def pm_frames(
     src: PackedWindow,
     centers,
     box: tuple[int, int, int, int],
-    p: Mapping[str, Any],
+    p: Mapping[str, Any] | CfsrSettings,
     tiles: np.ndarray | None = None,
     guide_out: np.ndarray | None = None,
     bank: dict[str, Any] | None = None,
@@ -329,28 +322,29 @@ def pm_frames(
     only), only the others are computed, and the bank is left holding this call's frames
     (before the blur, which runs on every frame as without a bank).
     """
+    s = CfsrSettings.of(p)
     y0, y1, x0, x1 = box
     if tiles is None:
         tiles = np.ones((-(-src.h // TILE), -(-src.w // TILE)), bool)
     cs = np.asarray(centers, np.int64)
-    thr = int(p["pm_guide"])
+    thr = int(s.pm_guide)
     raw = np.empty((cs.size, y1 - y0, x1 - x0), np.float32)
     tfa = np.empty(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     todo = np.arange(cs.size)
     if bank and "raw" in bank:
         taken, missing = _from_bank(
             bank, cs + shift, box, tiles, raw, tfa, thr > 0, (src.h, src.w),
-            (shift, shift + src.n, int(p["max_isi"])),
+            (shift, shift + src.n, int(s.max_isi)),
         )
         todo = np.flatnonzero(~taken)
         if taken.any() and missing.any():  # the taken frames' tiles the bank lacks
-            _merge(src, cs, np.flatnonzero(taken), box, p, missing, raw, tfa)
+            _merge(src, cs, np.flatnonzero(taken), box, s, missing, raw, tfa)
     if todo.size == cs.size:
-        _computed(src, cs, box, p, tiles, raw, tfa)
+        _computed(src, cs, box, s, tiles, raw, tfa)
     elif todo.size:
         r = np.empty((todo.size,) + raw.shape[1:], np.float32)
         f = np.empty(r.shape if thr > 0 else (1, 1, 1), np.float32)
-        _computed(src, cs[todo], box, p, tiles, r, f)
+        _computed(src, cs[todo], box, s, tiles, r, f)
         raw[todo] = r
         if thr > 0:
             tfa[todo] = f
@@ -358,7 +352,7 @@ def pm_frames(
         bank.update(box=tuple(int(v) for v in box), tiles=tiles.copy(), times=cs + shift,
                     raw=raw, tfa=tfa if thr > 0 else None, window=(shift, shift + src.n))
     g = raw if thr <= 0 else tfa
-    if p["pm_sigma"] <= 0:
+    if s.pm_sigma <= 0:
         if guide_out is not None:
             np.copyto(guide_out, g)
             return raw, guide_out
@@ -366,7 +360,7 @@ def pm_frames(
     import cv2
 
     out = np.empty_like(g) if guide_out is None else guide_out
-    sigma = float(p["pm_sigma"])
+    sigma = float(s.pm_sigma)
 
     def blur(ks: range) -> None:
         for k in ks:
@@ -461,7 +455,7 @@ def _merge(
     cs: np.ndarray,
     which: np.ndarray,
     box: tuple[int, int, int, int],
-    p: Mapping[str, Any],
+    s: CfsrSettings,
     missing: np.ndarray,
     raw: np.ndarray,
     tfa: np.ndarray,
@@ -469,7 +463,7 @@ def _merge(
     """Compute frames ``which`` on the ``missing`` tiles and write them there."""
     r = np.empty((which.size,) + raw.shape[1:], np.float32)
     f = np.empty(r.shape if tfa.shape[0] == raw.shape[0] else (1, 1, 1), np.float32)
-    _computed(src, cs[which], box, p, missing, r, f)
+    _computed(src, cs[which], box, s, missing, r, f)
     put = _computed_mask(box, missing)
     for j, i in enumerate(which.tolist()):
         raw[i][put] = r[j][put]
@@ -481,7 +475,7 @@ def _computed(
     src: PackedWindow,
     cs: np.ndarray,
     box: tuple[int, int, int, int],
-    p: Mapping[str, Any],
+    s: CfsrSettings,
     tiles: np.ndarray,
     raw: np.ndarray,
     tfa: np.ndarray,
@@ -493,13 +487,13 @@ def _computed(
     sub = _tile_rows(box, tiles)
     runs_at, runs = _runs(sub, TILE, x0, x1)
     order = np.argsort(cs, kind="stable")
-    m = int(p["max_isi"])
+    m = int(s.max_isi)
     lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
-    thr = int(p["pm_guide"])
+    thr = int(s.pm_guide)
     # the crop rows with work
     rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
     _pm_kernel(
-        _Span(src.packed, src.geo, lo, hi),
+        Words(src.packed, src.geo, lo, hi),
         _Centers(cs[order], order, m, thr),
         _Region(y0, x0, TILE, rows, runs_at, runs),
         raw,

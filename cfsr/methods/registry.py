@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Mapping, MutableMapping
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, fields
+from typing import Any, Self
 
 import numpy as np
 
@@ -23,6 +23,7 @@ __all__ = [
     "MAX_UNPACKED_STEPS",
     "MAX_WINDOW_STEPS",
     "Param",
+    "Settings",
     "Method",
     "Output",
     "register",
@@ -86,6 +87,20 @@ class Param:
                 )
         elif kind is str and not self.choices:
             raise ValueError(f"text parameter ({self.help!r}) needs choices")
+
+    @classmethod
+    def steps(
+        cls,
+        default: float,
+        help: str,
+        *,
+        minimum: float = 1,
+        maximum: float = MAX_WINDOW_STEPS // 2,
+    ) -> Param:
+        """A parameter counted in sensor steps (25 us each): by default a window-like one, at
+        least one step and at most half the window limit (:data:`MAX_WINDOW_STEPS`) on its
+        side of t, so that any two of them fit in a window together."""
+        return cls(default, "steps", help, minimum=minimum, maximum=maximum)
 
     @property
     def range_text(self) -> str:
@@ -162,6 +177,34 @@ def _convert(kind: type, value: Any) -> Any:
         return _BAD
 
 
+@dataclass(frozen=True)
+class Settings:
+    """Base of a method's typed settings: a frozen dataclass with one field per parameter of
+    the method's Param table, exactly (:func:`register` checks the names), built once per
+    frame from the resolved values (:meth:`of`) so that the pipeline reads attributes.
+
+    Subclasses declare the fields with their types and no defaults: the defaults, ranges and
+    units stay in the Param table, the one source of them.
+    """
+
+    @classmethod
+    def names(cls) -> frozenset[str]:
+        """The parameter names this settings type holds."""
+        return frozenset(f.name for f in fields(cls))
+
+    @classmethod
+    def of(cls, p: Mapping[str, Any] | Settings) -> Self:
+        """``p`` as this type: an instance as it is, else its fields taken from ``p`` (a
+        mapping of resolved values, :func:`resolve_params`, or a settings object of another
+        method that holds them); other names in ``p`` are ignored. A missing name raises
+        KeyError (a partial parameter set has no meaning here: resolve it first)."""
+        if isinstance(p, cls):
+            return p
+        if isinstance(p, Settings):
+            return cls(**{f.name: getattr(p, f.name) for f in fields(cls)})
+        return cls(**{f.name: p[f.name] for f in fields(cls)})
+
+
 @dataclass
 class Output:
     """One reconstructed frame.
@@ -214,6 +257,9 @@ class Method:
         (under 0.1 dB, docs/methods.md): for them the contract is :meth:`carry_groups`.
     groups : callable, optional
         ``(times, params) -> list of lists of steps``: :meth:`carry_groups` for this method.
+    settings : Settings subclass, optional
+        The method's typed settings (:class:`Settings`): its field names are exactly the
+        names of ``params`` (checked by :func:`register`).
     max_window : int, optional
         Most steps ``before + after`` (default: see :attr:`max_span`).
     """
@@ -230,6 +276,7 @@ class Method:
     recurrent: bool = False
     max_window: int | None = None
     groups: Callable[[Iterable[int], Mapping[str, Any]], list[list[int]]] | None = None
+    settings: type[Settings] | None = None
 
     def carry_groups(self, times: Iterable[int], params: Mapping[str, Any]) -> list[list[int]]:
         """The output steps ``times`` (sorted, deduplicated) split into groups to run in
@@ -305,6 +352,12 @@ _REGISTRY: dict[str, Method] = {}
 def register(method: Method) -> Method:
     if method.name in _REGISTRY:
         raise ValueError(f"method {method.name!r} registered twice")
+    if method.settings is not None and method.settings.names() != set(method.params):
+        # the Param table is the one source of names: a settings type must hold them all
+        raise ValueError(
+            f"method {method.name!r}: settings fields differ from its parameters: "
+            f"{sorted(method.settings.names() ^ set(method.params))}"
+        )
     _REGISTRY[method.name] = method
     return method
 

@@ -33,6 +33,7 @@ allows").
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -48,7 +49,8 @@ from cfsr._words import (
     prev_spike,
     row_words,
 )
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Param
+from cfsr.methods._spiketimes import candidate_run
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Param, Settings
 
 __all__ = [
     "SLOW_PARAMS",
@@ -69,9 +71,8 @@ HALVES = (2, 4, 8, 16, 32, 64, 128, 256, 512)
 SLOW_PARAMS: dict[str, Param] = {
     # the longest window tried: 257 steps (6 ms); longer ones gained nothing on the vibrating
     # mount and drift scenes (docs/methods.md, "Windows as long as the motion allows")
-    "slow_reach": Param(
+    "slow_reach": Param.steps(
         128,
-        "steps",
         "slow motion: half-width of the longest centred window tried (0: stage off)",
         minimum=0,
         maximum=MAX_WINDOW_STEPS // 4,
@@ -86,12 +87,10 @@ SLOW_PARAMS: dict[str, Param] = {
     # outside the fine region a window of 17 steps holding 5 spikes already beats the static
     # estimate where the pixel moves slowly; a test with fewer spikes has too little power
     # (dark movers passed it: the lowlight scene lost 4 dB with no spike floor)
-    "slow_min": Param(
+    "slow_min": Param.steps(
         8,
-        "steps",
         "slow motion: half-width a pixel's consistent window must reach for its rate to be "
         "taken, outside the fine region",
-        minimum=1,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
     "slow_intervals": Param(
@@ -105,11 +104,9 @@ SLOW_PARAMS: dict[str, Param] = {
     # per-pixel gain and dark-current spread that a single pixel's window keeps: a longer
     # window is asked for, and the two estimates are averaged (noisy scene: -1.2 dB in the
     # motion region replacing, +0.01 averaging)
-    "slow_fine_min": Param(
+    "slow_fine_min": Param.steps(
         32,
-        "steps",
         "slow motion: as slow_min, inside the fine region",
-        minimum=1,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
     "slow_fine_intervals": Param(
@@ -137,9 +134,8 @@ SLOW_PARAMS: dict[str, Param] = {
         minimum=0.0,
         maximum=10.0,
     ),
-    "slow_fine_full": Param(
+    "slow_fine_full": Param.steps(
         128,
-        "steps",
         "slow motion: half-width from which the window's rate replaces PatchMatch's inside "
         "the fine region (0: never)",
         minimum=0,
@@ -157,12 +153,10 @@ SLOW_PARAMS: dict[str, Param] = {
         minimum=0,
         maximum=255,
     ),
-    "slow_region_half": Param(
+    "slow_region_half": Param.steps(
         16,
-        "steps",
         "slow motion: half-width from which a window counts as long for the slow class (the "
         "pixel's own window must reach it too)",
-        minimum=1,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
     "slow_region_share": Param(
@@ -300,16 +294,10 @@ def _slow_kernel(src, rule, cand, rate, half, count):  # pragma: no cover - numb
     spikes in ``[src.lo, src.hi)``, words gathered row by row over the candidates' span."""
     packed, geo, lo, hi = src
     c, halves, slack, y0, x0 = rule
-    hh, ww = cand.shape
+    hh = cand.shape[0]
     nw = n_words(lo, hi)
     for i in prange(hh):
-        a_x = -1
-        b_x = -1
-        for x in range(ww):
-            if cand[i, x]:
-                if a_x < 0:
-                    a_x = x
-                b_x = x + 1
+        a_x, b_x = candidate_run(cand, i)
         if a_x < 0:
             continue
         words = np.empty((b_x - a_x + ROW_PAD, max(1, nw)), np.uint64)
@@ -326,9 +314,32 @@ def _slow_kernel(src, rule, cand, rate, half, count):  # pragma: no cover - numb
             count[i, x] = k
 
 
-def slow_reach(p: Mapping[str, Any]) -> int:
+@dataclass(frozen=True)
+class SlowSettings(Settings):
+    """The slow-motion stage's parameters (:data:`SLOW_PARAMS`: meaning, unit and range);
+    CFSR's settings extend them."""
+
+    slow_reach: int  #: steps, half-width of the longest window (0: stage off)
+    slow_slack: float
+    slow_min: int  #: steps
+    slow_intervals: int  #: intervals
+    slow_fine_min: int  #: steps
+    slow_fine_intervals: int  #: intervals
+    slow_fine_weight: float
+    slow_noise: float
+    slow_fine_full: int  #: steps
+    slow_region: int  #: pixels
+    slow_region_half: int  #: steps
+    slow_region_share: float
+    slow_region_intervals: int  #: intervals
+    slow_region_weight: float
+    slow_region_noise: float
+    slow_rough: float
+
+
+def slow_reach(p: Mapping[str, Any] | SlowSettings) -> int:
     """Steps on each side of t the slow-motion stage reads (0: off)."""
-    return int(p.get("slow_reach", 0))
+    return int(SlowSettings.of(p).slow_reach)
 
 
 def _halves(reach: int, n_before: int, n_after: int) -> np.ndarray:
@@ -427,7 +438,7 @@ def slow_fuse(
     center: int,
     rate: np.ndarray,
     fine: np.ndarray | None,
-    p: Mapping[str, Any],
+    p: Mapping[str, Any] | SlowSettings,
     active: np.ndarray | None = None,
     noise: float | None = None,
 ) -> np.ndarray:
@@ -447,33 +458,38 @@ def slow_fuse(
     than the static estimate, so ``rate`` is returned. Rates in spikes per step, float32
     (H, W).
     """
-    reach = slow_reach(p)
-    noisy = noise is not None and noise > float(p["slow_noise"])
+    s = SlowSettings.of(p)
+    reach = int(s.slow_reach)
+    noisy = noise is not None and noise > float(s.slow_noise)
     has_fine = fine is not None and bool(fine.any())
-    if reach <= 0 or (noisy and not (has_fine and noise <= float(p["slow_region_noise"]))):
+    if reach <= 0 or (noisy and not (has_fine and noise <= float(s.slow_region_noise))):
         return rate
     h, w = rate.shape
     cand = np.ones((h, w), bool) if active is None else active
-    slow, half, count = slow_rates(src, center, cand, reach=reach, slack=float(p["slow_slack"]))
+    slow, half, count = slow_rates(src, center, cand, reach=reach, slack=float(s.slow_slack))
     whole = count - 1  # whole intervals between the window's first and last spike
     # under temporal noise only the slow class below: a still pixel's window ends early there
-    take = (half >= int(p["slow_min"])) & (whole >= int(p["slow_intervals"])) & (not noisy)
+    take = (half >= int(s.slow_min)) & (whole >= int(s.slow_intervals)) & (not noisy)
     out = np.where(take, slow, rate)
     if has_fine:
         wgt = np.where(
-            (half >= int(p["slow_fine_full"])) & (int(p["slow_fine_full"]) > 0),
+            (half >= int(s.slow_fine_full)) & (int(s.slow_fine_full) > 0),
             np.float32(1.0),
-            np.float32(p["slow_fine_weight"]),
+            np.float32(s.slow_fine_weight),
         )
-        inner = fine & (half >= int(p["slow_fine_min"])) & (whole >= int(p["slow_fine_intervals"]))
+        inner = fine & (half >= int(s.slow_fine_min)) & (whole >= int(s.slow_fine_intervals))
         wgt = np.where(inner & (not noisy), wgt, np.float32(0.0))
-        wgt = _slow_class(slow, rate, half, whole, fine, cand, wgt, p)
+        wgt = _slow_class(slow, rate, half, whole, fine, cand, wgt, s)
         out = np.where(fine, wgt * slow + (1 - wgt) * rate, out)
     return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
 def slow_class(
-    half: np.ndarray, whole: np.ndarray, fine: np.ndarray, cand: np.ndarray, p: Mapping[str, Any]
+    half: np.ndarray,
+    whole: np.ndarray,
+    fine: np.ndarray,
+    cand: np.ndarray,
+    p: Mapping[str, Any] | SlowSettings,
 ) -> np.ndarray:
     """The fine-region pixels of the slow class (bool (H, W)): a region whose windows are
     nearly all long, i.e. whose motion stays under a fraction of a pixel over them.
@@ -486,19 +502,20 @@ def slow_class(
     speed class of the region: a fast mover has short windows at its edges and within its
     texture, which a lone long window inside it does not outweigh.
     """
-    side = int(p["slow_region"])
+    s = SlowSettings.of(p)
+    side = int(s.slow_region)
     if side <= 0:
         return np.zeros(fine.shape, bool)
     import cv2
 
-    a = int(p["slow_region_half"])
+    a = int(s.slow_region_half)
     long_ = ((half >= a) | ~cand).astype(np.float32)
     share = cv2.blur(long_, (side, side))  # the square's mean, mirrored at the frame's edge
     return (
         fine
         & (half >= a)
-        & (whole >= int(p["slow_region_intervals"]))
-        & (share >= np.float32(p["slow_region_share"]) - np.float32(1e-6))
+        & (whole >= int(s.slow_region_intervals))
+        & (share >= np.float32(s.slow_region_share) - np.float32(1e-6))
     )
 
 
@@ -510,17 +527,17 @@ def _rough(img: np.ndarray, sel: np.ndarray) -> float:
     return float(np.mean(np.square(hp[sel], dtype=np.float64)))
 
 
-def _slow_class(slow, rate, half, whole, fine, cand, wgt, p) -> np.ndarray:
+def _slow_class(slow, rate, half, whole, fine, cand, wgt, s: SlowSettings) -> np.ndarray:
     """``wgt`` (the window's weight against PatchMatch's, float32 (H, W)) with the slow class
     (:func:`slow_class`) moved ``slow_region_weight`` of the way to the window's rate, unless
     the windows' rates there are ``slow_rough`` times rougher than PatchMatch's (a
     fixed-pattern spread that only PatchMatch's average of other pixels cancels)."""
-    rw = float(p["slow_region_weight"])
+    rw = float(s.slow_region_weight)
     if rw <= 0.0:
         return wgt
-    cls = slow_class(half, whole, fine, cand, p)
+    cls = slow_class(half, whole, fine, cand, s)
     if not cls.any():
         return wgt
-    if _rough(slow, cls) > float(p["slow_rough"]) * _rough(rate, cls):
+    if _rough(slow, cls) > float(s.slow_rough) * _rough(rate, cls):
         return wgt
     return np.where(cls, wgt + (1 - wgt) * np.float32(rw), wgt).astype(np.float32)

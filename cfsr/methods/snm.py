@@ -29,11 +29,12 @@ and the motion excitation uses interval statistics rather than synaptic delays.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
+from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, Settings, register
 from cfsr.methods.tfa import adaptive_rate
 from cfsr.methods.tfi import tfi_rate
 from cfsr.methods.tfp import tfp_rate
@@ -84,35 +85,49 @@ def graph_cut_labels(conf: np.ndarray, smoothness: float) -> np.ndarray:
     return np.asarray(g.get_grid_segments(nodes), dtype=bool)
 
 
+@dataclass(frozen=True)
+class SnmSettings(Settings):
+    """SNM's parameters (its Param table below)."""
+
+    long_window: int  #: static integration window (centred), steps
+    max_isi: int  #: interval search range each side of t, steps
+    motion_sigma: float  #: excitation (log ratio) giving confidence 0.63
+    smoothness: float  #: graph-cut Potts weight
+    motion_threshold: int  #: intervals integrated in motion
+    refractory: float  #: refractory fraction of the median interval
+
+
 def snm_rate(
-    spikes: np.ndarray, center: int, p: Mapping[str, Any]
+    spikes: np.ndarray, center: int, p: Mapping[str, Any] | SnmSettings
 ) -> tuple[np.ndarray, np.ndarray]:
     """SNM rate (spikes/step, float32) and motion labels (bool) at ``center``."""
+    s = SnmSettings.of(p)
     conf = motion_confidence(
         spikes,
         center,
-        long_window=p["long_window"],
-        max_isi=p["max_isi"],
-        motion_sigma=p["motion_sigma"],
+        long_window=s.long_window,
+        max_isi=s.max_isi,
+        motion_sigma=s.motion_sigma,
     )
-    labels = graph_cut_labels(conf, p["smoothness"])
-    static = tfp_rate(spikes, center, window=p["long_window"], mode="centred")
+    labels = graph_cut_labels(conf, s.smoothness)
+    static = tfp_rate(spikes, center, window=s.long_window, mode="centred")
     if not labels.any():
         return np.clip(static, 0.0, 1.0).astype(np.float32), labels
     moving = adaptive_rate(
         spikes,
         center,
-        threshold=p["motion_threshold"],
-        max_window=p["max_isi"],
-        refractory=p["refractory"],
+        threshold=s.motion_threshold,
+        max_window=s.max_isi,
+        refractory=s.refractory,
     )
     rate = np.where(labels, moving, static).astype(np.float32)
     return np.clip(rate, 0.0, 1.0), labels
 
 
 def _window(p: Mapping[str, Any]) -> tuple[int, int]:
-    lw = p["long_window"]
-    return max(lw // 2, p["max_isi"]), max(lw - lw // 2 - 1, p["max_isi"])
+    s = SnmSettings.of(p)
+    lw = s.long_window
+    return max(lw // 2, s.max_isi), max(lw - lw // 2 - 1, s.max_isi)
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
@@ -127,18 +142,15 @@ register(
         "adaptive-threshold reconstruction",
         params={
             # no packed path: the whole window is unpacked, hence the tighter limits
-            "long_window": Param(
+            "long_window": Param.steps(
                 160,
-                "steps",
                 "static integration window (centred)",
                 minimum=2,
                 maximum=MAX_UNPACKED_STEPS,
             ),
-            "max_isi": Param(
+            "max_isi": Param.steps(
                 200,
-                "steps",
                 "interval search range each side of t",
-                minimum=1,
                 maximum=MAX_UNPACKED_STEPS // 2,
             ),
             # |log ISI ratio| <= log(40,000) ~ 10.6 for any two intervals within 1 s
@@ -159,5 +171,6 @@ register(
         compute=_compute,
         masks=("motion",),
         reference="Zhu et al., CVPR 2020 (SNM), reduced; see docs/methods.md",
+        settings=SnmSettings,
     )
 )

@@ -24,6 +24,8 @@ the two counts cost.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit, prange
 
@@ -35,14 +37,34 @@ from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
 __all__ = ["active_tiles", "span_counts", "span_isi_rate", "static_gate"]
 
 
+class _Raster(NamedTuple):
+    """Where a window's image pixels lie among its stored ones, by name: what the gate reads
+    of the packed geometry ``src.geo`` (int64[5], :func:`cfsr._words.geometry`). Stored pixel
+    ``q`` is an image pixel when ``q // stored_width < height`` and ``q % stored_width <
+    width`` (head columns at the right of every stored row); the compiled gate takes it as
+    it is."""
+
+    stored_width: int  #: stored pixels per row, head columns included
+    height: int  #: image rows
+    width: int  #: image columns
+    flipud: bool  #: rows stored bottom-up
+    fliplr: bool  #: columns stored right to left
+
+    @classmethod
+    def of(cls, src: PackedWindow) -> _Raster:
+        geo = src.geo  # [stored width, height, flipud, first column, column step]
+        return cls(int(geo[0]), src.h, src.w, bool(geo[2]), int(geo[4]) < 0)
+
+
 def _stored(src: PackedWindow, flat: np.ndarray) -> np.ndarray:
     """:func:`cfsr._packed.stored_view` of ``src``'s geometry."""
-    return stored_view(flat, int(src.geo[0]), src.h, src.w)
+    return stored_view(flat, _Raster.of(src).stored_width, src.h, src.w)
 
 
 def _upright(src: PackedWindow, stored: np.ndarray, dtype=np.int32) -> np.ndarray:
     """A :func:`_stored` view -> the upright image (a new ``dtype`` array)."""
-    return upright(stored, int(src.geo[4]) < 0, bool(src.geo[2])).astype(dtype)
+    r = _Raster.of(src)
+    return upright(stored, r.fliplr, r.flipud).astype(dtype)
 
 
 def span_counts(src: PackedWindow, a: int, b: int) -> np.ndarray:
@@ -67,7 +89,7 @@ def span_isi_rate(
     (``max_isi`` steps each side; :func:`cfsr.methods.tfp.static_rate`'s rule)."""
     flat = isi_span_stored(src.packed, a, b, mark=mark or center is not None)
     if center is not None:
-        sw = int(src.geo[0])
+        sw = _Raster.of(src).stored_width
         fill_sparse_stored(flat, src.packed, src.h, sw, src.w, int(center), int(max_isi))
     return _upright(src, _stored(src, flat), np.float32)
 
@@ -80,12 +102,14 @@ def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed, c
     by more than ``tol``; after that the remaining chunks are skipped. Chunks of 64 bytes
     (512 stored pixels, one cache line of every frame, SWAR lane counts as
     :func:`cfsr._packed.count_packed`) are taken in ``order`` (:func:`_probe_order`).
-    ``raster = (stored width, height, width)``: stored pixel ``p`` is an image pixel when
-    ``p // sw < height`` and ``p % sw < width`` (head columns at the right of every row).
+    ``raster``: :class:`_Raster` (stored pixel ``p`` is an image pixel when ``p // sw <
+    height`` and ``p % sw < width``).
     A non-empty ``changes`` (uint8, one per stored pixel) takes every pixel's verdict
     (``|change| > tol``) and keeps the kernel going to the last chunk."""
     nb = packed.shape[1]
-    sw, height, width = raster
+    sw = raster.stored_width
+    height = raster.height
+    width = raster.width
     every = changes.shape[0] > 0
     for i in prange(order.shape[0]):
         if failed[0] and not every:
@@ -167,7 +191,7 @@ def _gate(src: PackedWindow, end: int, window: int, tol: int, *, every: bool):
         end - 2 * window,
         window,
         LANES,
-        (int(src.geo[0]), src.h, src.w),
+        _Raster.of(src),
         int(tol),
         np.arange(nchunks, dtype=np.int64) if every else _probe_order(nchunks),
         recent,

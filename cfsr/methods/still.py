@@ -40,6 +40,7 @@ import numpy as np
 from numba import njit, prange
 
 from cfsr._words import ROW_PAD, Words, n_words, range_times, row_words
+from cfsr.methods._spiketimes import candidate_run
 
 __all__ = ["still_pixels", "EDGE"]
 
@@ -218,16 +219,10 @@ def _still_kernel(src, kept, test, cand, still, rate):  # pragma: no cover - num
     mid = lo
     if store.shape[0] > 0 and s_lo <= lo:
         mid = max(lo, min(hi, s_hi))
-    hh, ww = cand.shape
+    hh = cand.shape[0]
     nw = n_words(mid, hi)
     for i in prange(hh):
-        a_x = -1
-        b_x = -1
-        for x in range(ww):
-            if cand[i, x]:
-                if a_x < 0:
-                    a_x = x
-                b_x = x + 1
+        a_x, b_x = candidate_run(cand, i)
         if a_x < 0:
             continue
         y = y0 + i

@@ -19,6 +19,7 @@ The same kernel, with a refractory merge of too-short intervals, is SNM's motion
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,7 @@ from numba import njit, prange
 
 from cfsr._isi import search_range
 from cfsr.methods._spiketimes import pixel_times, row_gather
-from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, register
+from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, Settings, register
 
 __all__ = ["adaptive_rate", "adaptive_rates"]
 
@@ -195,10 +196,22 @@ def adaptive_rate(
     )[0]
 
 
+@dataclass(frozen=True)
+class TfaSettings(Settings):
+    """TFA's parameters (its Param table below)."""
+
+    threshold: int  #: intervals integrated per pixel
+    max_window: int  #: search range each side of t, steps
+
+
+def _window(p: Mapping[str, Any]) -> tuple[int, int]:
+    s = TfaSettings.of(p)
+    return s.max_window, s.max_window
+
+
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(
-        adaptive_rate(window, center, threshold=p["threshold"], max_window=p["max_window"])
-    )
+    s = TfaSettings.of(p)
+    return Output(adaptive_rate(window, center, threshold=s.threshold, max_window=s.max_window))
 
 
 register(
@@ -210,17 +223,16 @@ register(
                 8, "intervals", "intervals integrated per pixel", minimum=1, maximum=1000
             ),
             # no packed path: the whole window is unpacked, hence the tighter limit
-            "max_window": Param(
+            "max_window": Param.steps(
                 200,
-                "steps",
                 "search range each side of t",
-                minimum=1,
                 maximum=MAX_UNPACKED_STEPS // 2,
             ),
         },
-        window=lambda p: (p["max_window"], p["max_window"]),
+        window=_window,
         compute=_compute,
         presets={"paper": {"threshold": 12}},
         reference="CFSR paper baseline TFA (adaptive threshold); see docs/methods.md",
+        settings=TfaSettings,
     )
 )

@@ -8,6 +8,7 @@ For pixel x and output step t, the spikes s_prev <= t < s_next bracket t and the
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -16,7 +17,7 @@ from numba import njit, prange
 from cfsr._isi import isi_from_times, needs_after, needs_before, search_range, tfi_interval
 from cfsr._packed import isi_packed, stored_to_image
 from cfsr.methods._spiketimes import pixel_times, row_gather
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
+from cfsr.methods.registry import Method, Output, Param, Settings, register
 
 __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
 
@@ -132,8 +133,20 @@ def tfi_rates(spikes: np.ndarray, centers, *, max_isi: int = 400) -> np.ndarray:
     return (1.0 / out).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class TfiSettings(Settings):
+    """TFI's parameters (its Param table below)."""
+
+    max_isi: int  #: steps searched each side of t
+
+
+def _window(p: Mapping[str, Any]) -> tuple[int, int]:
+    s = TfiSettings.of(p)
+    return s.max_isi, s.max_isi
+
+
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(tfi_rate(window, center, max_isi=p["max_isi"]))
+    return Output(tfi_rate(window, center, max_isi=TfiSettings.of(p).max_isi))
 
 
 def tfi_rate_packed(packed: np.ndarray, layout, center: int, *, max_isi: int = 400) -> np.ndarray:
@@ -147,7 +160,7 @@ def tfi_rate_packed(packed: np.ndarray, layout, center: int, *, max_isi: int = 4
 
 
 def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(tfi_rate_packed(packed, layout, center, max_isi=p["max_isi"]))
+    return Output(tfi_rate_packed(packed, layout, center, max_isi=TfiSettings.of(p).max_isi))
 
 
 register(
@@ -155,17 +168,12 @@ register(
         name="tfi",
         summary="Texture from inter-spike interval: rate = 1 / ISI containing t",
         params={
-            "max_isi": Param(
-                400,
-                "steps",
-                "longest ISI searched each side of t",
-                minimum=1,
-                maximum=MAX_WINDOW_STEPS // 2,
-            ),
+            "max_isi": Param.steps(400, "longest ISI searched each side of t"),
         },
-        window=lambda p: (p["max_isi"], p["max_isi"]),
+        window=_window,
         compute=_compute,
         compute_packed=_compute_packed,
         reference="CFSR paper Eq. 3 (Zhu et al., TFI)",
+        settings=TfiSettings,
     )
 )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -11,7 +12,7 @@ from numba import njit, prange
 from cfsr._isi import search_range
 from cfsr._packed import CHUNK, count_packed, stored_to_image
 from cfsr._words import _load_u64, trailing_zeros
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, register
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
 
 __all__ = [
     "tfp_rate",
@@ -333,15 +334,24 @@ def tfp_rate(
     return (counts / np.float32(max(1, b - a))).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class TfpSettings(Settings):
+    """TFP's parameters (its Param table below)."""
+
+    window: int  #: window length w, steps
+    mode: str  #: trailing or centred
+
+
 def _window(p: Mapping[str, Any]) -> tuple[int, int]:
-    w = p["window"]
-    if p["mode"] == "trailing":
-        return w - 1, 0
-    return w // 2, w - w // 2 - 1
+    s = TfpSettings.of(p)
+    if s.mode == "trailing":
+        return s.window - 1, 0
+    return s.window // 2, s.window - s.window // 2 - 1
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(tfp_rate(window, center, window=p["window"], mode=p["mode"]))
+    s = TfpSettings.of(p)
+    return Output(tfp_rate(window, center, window=s.window, mode=s.mode))
 
 
 def tfp_rate_packed(
@@ -356,7 +366,8 @@ def tfp_rate_packed(
 
 
 def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(tfp_rate_packed(packed, layout, center, window=p["window"], mode=p["mode"]))
+    s = TfpSettings.of(p)
+    return Output(tfp_rate_packed(packed, layout, center, window=s.window, mode=s.mode))
 
 
 register(
@@ -377,5 +388,6 @@ register(
         compute_packed=_compute_packed,
         presets={"paper": {"window": 160}, "simulated": {"window": 30}},
         reference="CFSR paper Eq. 4 (Zhu et al., TFP)",
+        settings=TfpSettings,
     )
 )

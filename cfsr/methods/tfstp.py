@@ -51,6 +51,7 @@ from cfsr.methods.registry import (
     Method,
     Output,
     Param,
+    Settings,
     register,
 )
 
@@ -257,8 +258,15 @@ def _at(
     return _rate(frames, (h, w), t, state_start(t, warmup, first=int(start)), c, memo)
 
 
-def _params(p: Mapping[str, Any]) -> dict[str, Any]:
-    return {"warmup": p["warmup"], "u0": p["u0"], "D": p["D"], "F": p["F"], "f": p["f"]}
+@dataclass(frozen=True)
+class TfstpSettings(Settings):
+    """TFSTP's parameters (its Param table below)."""
+
+    warmup: int  #: least steps before t that build the synapse state
+    u0: float  #: baseline utilisation
+    D: float  #: recovery time constant tau_D, steps
+    F: float  #: facilitation time constant tau_F, steps
+    f: float  #: facilitation increment
 
 
 def _compute(
@@ -268,7 +276,12 @@ def _compute(
     p: Mapping[str, Any],
     memo: MutableMapping[str, Any] | None = None,
 ) -> Output:
-    return Output(stp_rate(window, center, start=start, memo=memo, **_params(p)))
+    s = TfstpSettings.of(p)
+    return Output(
+        stp_rate(
+            window, center, start=start, memo=memo, warmup=s.warmup, u0=s.u0, D=s.D, F=s.F, f=s.f
+        )
+    )
 
 
 def _compute_packed(
@@ -281,7 +294,8 @@ def _compute_packed(
 ) -> Output:
     """As :func:`_compute`, unpacking only the frames the state has not folded in yet."""
     packed = np.asarray(packed)
-    c = _constants(p["u0"], p["D"], p["F"], p["f"])
+    s = TfstpSettings.of(p)
+    c = _constants(s.u0, s.D, s.F, s.f)
 
     def frames(a: int, b: int) -> np.ndarray:
         return unpack_frames(
@@ -294,12 +308,13 @@ def _compute_packed(
         )
 
     shape = (packed.shape[0], layout.height, layout.width)
-    return Output(_at(frames, shape, center, start, p["warmup"], c, memo))
+    return Output(_at(frames, shape, center, start, s.warmup, c, memo))
 
 
 def _window(p: Mapping[str, Any]) -> tuple[int, int]:
     # the state starts up to one grid step before t - warmup
-    return p["warmup"] + state_grid(p["warmup"]) - 1, 0
+    warmup = TfstpSettings.of(p).warmup
+    return warmup + state_grid(warmup) - 1, 0
 
 
 register(
@@ -309,24 +324,20 @@ register(
         params={
             # no packed scan: the window's frames are unpacked, hence the tighter limit (the
             # state forgets its start within a few spikes, ~F steps)
-            "warmup": Param(
+            "warmup": Param.steps(
                 400,
-                "steps",
                 "least steps before t that build the synapse state",
-                minimum=1,
                 maximum=MAX_UNPACKED_STEPS * STARTS_PER_WARMUP // (STARTS_PER_WARMUP + 1),
             ),
             "u0": Param(0.15, "", "baseline utilisation u0", minimum=1e-6, maximum=0.999),
-            "D": Param(
+            "D": Param.steps(
                 1.0,
-                "steps",
                 "recovery time constant tau_D",
                 minimum=1e-3,
                 maximum=float(MAX_WINDOW_STEPS),
             ),
-            "F": Param(
+            "F": Param.steps(
                 10.0,
-                "steps",
                 "facilitation time constant tau_F",
                 minimum=1e-3,
                 maximum=float(MAX_WINDOW_STEPS),
@@ -340,5 +351,6 @@ register(
         max_window=MAX_UNPACKED_STEPS,
         presets={"spikecv": {"u0": 0.15, "D": 1.0, "F": 10.0, "f": 0.15}},
         reference="Zheng et al., TFSTP (CVPR 2021 / TPAMI 2023); SpikeCV tfstp.py",
+        settings=TfstpSettings,
     )
 )
