@@ -58,6 +58,11 @@ read them once per pixel straight from the packed frames as spike words (:mod:`c
 ``compute_packed``, no unpacking) and compute, with the same numbers as the stand-alone
 kernels: the whole-frame history scan (steps 1 and 3, the TFP and TFI at t) and the
 PatchMatch-region scan (step 5).
+
+Layout: this module is the pipeline (:func:`fine_stage` and its stages, each returning a named
+tuple); the parameter table, presets, quality tiers and the typed settings every stage reads
+(:class:`CfsrSettings`, built once per frame) are in :mod:`cfsr.methods._cfsr_params`, the
+compiled whole-frame scans in :mod:`cfsr.methods._cfsr_kernels`.
 """
 
 from __future__ import annotations

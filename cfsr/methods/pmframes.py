@@ -22,6 +22,7 @@ from numba import get_num_threads, njit, prange
 from cfsr._isi import isi_from_times, search_range
 from cfsr._words import (
     ROW_PAD,
+    WORD_STEPS,
     PackedWindow,
     Words,
     n_words,
@@ -35,11 +36,11 @@ from cfsr.methods.tfa import grow_span
 
 __all__ = ["TILE", "match_reach", "pm_tiles", "pm_frames", "isi_from_times"]
 
-# spike words: one bit per step, 64 steps per uint64 word (step s of the span is bit s & 63 of
-# word s >> 6)
-_WORD_BITS = 64
-_WORD_SHIFT = 6
-_WORD_MASK = _WORD_BITS - 1
+# spike words (:mod:`cfsr._words`): one bit per step, WORD_STEPS (64) steps per uint64 word;
+# step s of the span is bit s & 63 of word s >> 6
+_WORD_BITS = WORD_STEPS
+_WORD_SHIFT = WORD_STEPS.bit_length() - 1
+_WORD_MASK = WORD_STEPS - 1
 
 
 @njit(cache=True, inline="always")
