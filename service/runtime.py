@@ -33,6 +33,7 @@ from cfsr_live.service.status import (
     SourceReport,
     StatusModel,
     WorkerReport,
+    real_time_factor,
     ring_status,
     source_report,
 )
@@ -437,7 +438,7 @@ class Runtime:
             method=self.config.method.method,
             params=dict(self.config.method.params),
             input_steps_per_s=in_rate,
-            real_time_factor=in_rate / rate_hz if rate_hz else 0.0,
+            real_time_factor=real_time_factor(in_rate, rate_hz),
             output_fps=frames.output_fps,
             latency_ms=worker.latency_ms,
             compute_ms=worker.compute_ms,

@@ -50,6 +50,7 @@ __all__ = [
     "StatusModel",
     "WorkerReport",
     "WorkerStatus",
+    "real_time_factor",
     "ring_status",
     "source_losses",
     "source_report",
@@ -83,6 +84,11 @@ class RateMeter:
                 t0, v0 = t, v
                 break
         return (v1 - v0) / (t1 - t0) if t1 > t0 else 0.0
+
+def real_time_factor(steps_per_s: float, rate_hz: float) -> float:
+    """Steps taken in per second over the sensor's steps per second (1: keeping up with the
+    camera); 0 while the sensor rate is unknown (0)."""
+    return steps_per_s / rate_hz if rate_hz else 0.0
 
 
 # -- the source ---------------------------------------------------------------------------------

@@ -38,7 +38,13 @@ from cfsr.layout import Layout
 from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
 from cfsr_live.service.schema import WorkerCounters
-from cfsr_live.service.status import QualityShare, RateMeter, WorkerReport, WorkerStatus
+from cfsr_live.service.status import (
+    QualityShare,
+    RateMeter,
+    WorkerReport,
+    WorkerStatus,
+    real_time_factor,
+)
 
 __all__ = [
     "Attach",
@@ -158,6 +164,8 @@ FALLBACK_AFTER_S = 1.0
 #: and is allowed COLD_TASK_HANG_S
 TASK_HANG_S = 120.0
 COLD_TASK_HANG_S = 900.0
+#: the worker's counters (WorkerCounters) that its status shows as they are, by their names
+_COUNTERS_SHOWN = ("frames_out", "gaps", "dropped_late", "dropped_order", "fallback_frames")
 
 
 class _Worker:
@@ -1031,9 +1039,8 @@ class WorkerSupervisor:
                 heartbeat_age_s=None if math.isinf(age) else age,
                 first_frame_s=(time.monotonic() - first) if first else None,
                 steps_per_s=steps_per_s,
-                real_time_factor=steps_per_s / rate_hz if rate_hz else 0.0,
-                frames_out=st.frames_out,
-                gaps=st.gaps,
+                real_time_factor=real_time_factor(steps_per_s, rate_hz),
+                **{name: getattr(st, name) for name in _COUNTERS_SHOWN},
                 workers=self.workers,
                 threads_per_worker=self.threads,
                 quality=QualityShare(
@@ -1042,10 +1049,7 @@ class WorkerSupervisor:
                     full=st.q_full,
                     fast=st.q_fast,
                 ),
-                dropped_late=st.dropped_late,
-                dropped_order=st.dropped_order,
                 fallback_method="tfp" if st.fallback and first else None,
-                fallback_frames=st.fallback_frames,
             ),
             latency_ms=st.latency_ms,
             compute_ms=st.compute_ms,
