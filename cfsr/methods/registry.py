@@ -204,6 +204,11 @@ class Settings:
             return cls(**{f.name: getattr(p, f.name) for f in fields(cls)})
         return cls(**{f.name: p[f.name] for f in fields(cls)})
 
+    def pick(self, *names: str) -> dict[str, Any]:
+        """``{name: value}`` of ``names``: the keywords of a stage function whose parameters
+        are named as the method's."""
+        return {name: getattr(self, name) for name in names}
+
 
 @dataclass
 class Output:

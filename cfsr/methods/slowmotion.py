@@ -33,7 +33,7 @@ allows").
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -67,6 +67,22 @@ __all__ = [
 #: much and scored the same within 0.15 dB on six scenes).
 HALVES = (2, 4, 8, 16, 32, 64, 128, 256, 512)
 
+#: The window rule outside the fine region; the fine region's own rule (slow_fine_min,
+#: slow_fine_intervals) is the same parameter with another default.
+_SLOW_MIN = Param.steps(
+    8,
+    "slow motion: half-width a pixel's consistent window must reach for its rate to be "
+    "taken, outside the fine region",
+    maximum=MAX_WINDOW_STEPS // 4,
+)
+_SLOW_INTERVALS = Param(
+    4,
+    "intervals",
+    "slow motion: whole inter-spike intervals that window must hold, outside the fine region",
+    minimum=0,
+    maximum=MAX_WINDOW_STEPS,
+)
+
 #: CFSR's parameters of the slow-motion stage (inserted into its table).
 SLOW_PARAMS: dict[str, Param] = {
     # the longest window tried: 257 steps (6 ms); longer ones gained nothing on the vibrating
@@ -87,34 +103,17 @@ SLOW_PARAMS: dict[str, Param] = {
     # outside the fine region a window of 17 steps holding 5 spikes already beats the static
     # estimate where the pixel moves slowly; a test with fewer spikes has too little power
     # (dark movers passed it: the lowlight scene lost 4 dB with no spike floor)
-    "slow_min": Param.steps(
-        8,
-        "slow motion: half-width a pixel's consistent window must reach for its rate to be "
-        "taken, outside the fine region",
-        maximum=MAX_WINDOW_STEPS // 4,
-    ),
-    "slow_intervals": Param(
-        4,
-        "intervals",
-        "slow motion: whole inter-spike intervals that window must hold, outside the fine region",
-        minimum=0,
-        maximum=MAX_WINDOW_STEPS,
-    ),
+    "slow_min": _SLOW_MIN,
+    "slow_intervals": _SLOW_INTERVALS,
     # inside the fine region PatchMatch averages matches from other pixels, which cancels
     # per-pixel gain and dark-current spread that a single pixel's window keeps: a longer
     # window is asked for, and the two estimates are averaged (noisy scene: -1.2 dB in the
-    # motion region replacing, +0.01 averaging)
-    "slow_fine_min": Param.steps(
-        32,
-        "slow motion: as slow_min, inside the fine region",
-        maximum=MAX_WINDOW_STEPS // 4,
+    # motion region replacing, +0.01 averaging); same units and ranges as outside it
+    "slow_fine_min": replace(
+        _SLOW_MIN, default=32, help="slow motion: as slow_min, inside the fine region"
     ),
-    "slow_fine_intervals": Param(
-        12,
-        "intervals",
-        "slow motion: as slow_intervals, inside the fine region",
-        minimum=0,
-        maximum=MAX_WINDOW_STEPS,
+    "slow_fine_intervals": replace(
+        _SLOW_INTERVALS, default=12, help="slow motion: as slow_intervals, inside the fine region"
     ),
     "slow_fine_weight": Param(
         0.5,

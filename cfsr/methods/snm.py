@@ -102,13 +102,7 @@ def snm_rate(
 ) -> tuple[np.ndarray, np.ndarray]:
     """SNM rate (spikes/step, float32) and motion labels (bool) at ``center``."""
     s = SnmSettings.of(p)
-    conf = motion_confidence(
-        spikes,
-        center,
-        long_window=s.long_window,
-        max_isi=s.max_isi,
-        motion_sigma=s.motion_sigma,
-    )
+    conf = motion_confidence(spikes, center, **s.pick("long_window", "max_isi", "motion_sigma"))
     labels = graph_cut_labels(conf, s.smoothness)
     static = tfp_rate(spikes, center, window=s.long_window, mode="centred")
     if not labels.any():

@@ -215,13 +215,6 @@ def _fill_sparse(rate: np.ndarray, tfi) -> np.ndarray:
     return rate
 
 
-def _check_isi_estimator(estimator: str, window: int) -> None:
-    if estimator != "isi":
-        raise ValueError(f"estimator must be one of {STATIC_ESTIMATORS}, got {estimator!r}")
-    if window < 1:
-        raise ValueError(f"window must be >= 1 step, got {window}")
-
-
 def static_rate(
     spikes: np.ndarray,
     center: int,
@@ -231,6 +224,7 @@ def static_rate(
     estimator: str,
     max_isi: int = 200,
     tfi: np.ndarray | None = None,
+    layout=None,
 ) -> np.ndarray:
     """Static-region rate at ``center``, float32 ``(H, W)`` spikes per step in [0, 1].
 
@@ -240,11 +234,21 @@ def static_rate(
     ``center`` (Eq. 3, ``max_isi`` steps searched each side; ``tfi`` when given). Such a
     pixel fires less than about twice per span, so the one interval around ``center``
     measures its rate to one step where the count says 0 or ``1 / window``.
+
+    ``layout`` (a :class:`cfsr.layout.Layout`): ``spikes`` are packed frames ``(n,
+    frame_bytes)`` of that layout, read without unpacking (:func:`static_rate_packed`).
     """
     if estimator == "tfp":
+        if layout is not None:
+            return tfp_rate_packed(spikes, layout, center, window=window, mode=mode)
         return tfp_rate(spikes, center, window=window, mode=mode)
-    _check_isi_estimator(estimator, window)
+    if estimator != "isi":
+        raise ValueError(f"estimator must be one of {STATIC_ESTIMATORS}, got {estimator!r}")
+    if window < 1:
+        raise ValueError(f"window must be >= 1 step, got {window}")
     a, b = tfp_span(center, spikes.shape[0], window, mode)
+    if layout is not None:
+        return _isi_static_packed(spikes, layout, a, b, center, max_isi, tfi)
     from cfsr.methods.tfi import tfi_rate
 
     rate = isi_span_rate(spikes, a, b, mark=True)
@@ -253,23 +257,14 @@ def static_rate(
     return _fill_sparse(rate, tfi)
 
 
-def static_rate_packed(
-    packed: np.ndarray,
-    layout,
-    center: int,
-    *,
-    window: int,
-    mode: str = "trailing",
-    estimator: str,
-    max_isi: int = 200,
-    tfi: np.ndarray | None = None,
-) -> np.ndarray:
-    """:func:`static_rate` from packed frames ``(n, frame_bytes)`` without unpacking."""
-    if estimator == "tfp":
-        return tfp_rate_packed(packed, layout, center, window=window, mode=mode)
-    _check_isi_estimator(estimator, window)
-    n = packed.shape[0]
-    a, b = tfp_span(center, n, window, mode)
+def static_rate_packed(packed: np.ndarray, layout, center: int, **rule) -> np.ndarray:
+    """:func:`static_rate` (the same keywords) from packed frames ``(n, frame_bytes)`` of
+    ``layout`` without unpacking."""
+    return static_rate(packed, center, layout=layout, **rule)
+
+
+def _isi_static_packed(packed, layout, a, b, center, max_isi, tfi) -> np.ndarray:
+    """The ``isi`` rule of :func:`static_rate` over steps ``[a, b)`` of packed frames."""
     flat = isi_span_stored(packed, a, b, mark=True)
     if tfi is None:  # the TFI of the pixels below two spikes only, read in place
         fill_sparse_stored(

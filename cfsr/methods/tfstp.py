@@ -44,7 +44,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from cfsr._bits import unpack_frames
+from cfsr._bits import unpack_layout
 from cfsr.methods.registry import (
     MAX_UNPACKED_STEPS,
     MAX_WINDOW_STEPS,
@@ -298,14 +298,7 @@ def _compute_packed(
     c = _constants(s.u0, s.D, s.F, s.f)
 
     def frames(a: int, b: int) -> np.ndarray:
-        return unpack_frames(
-            packed[a - start : b - start],
-            layout.height,
-            layout.width,
-            stored_width=layout.stored_width,
-            flipud=layout.flipud,
-            fliplr=layout.fliplr,
-        )
+        return unpack_layout(packed[a - start : b - start], layout)
 
     shape = (packed.shape[0], layout.height, layout.width)
     return Output(_at(frames, shape, center, start, s.warmup, c, memo))
