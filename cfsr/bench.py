@@ -256,12 +256,14 @@ TIER_CANDIDATES: tuple[tuple[str, dict[str, Any]], ...] = (
     ("mog past", {"mog_sides": "past"}),
     ("still 0", {"still_reach": 0}),
     ("still 190", {"still_reach": 190}),
-    ("pm 12", {"pm_count": 12}),
+    ("pm 16x3", {"pm_count": 16, "pm_step": 3}),
+    ("pm 20x2", {"pm_count": 20, "pm_step": 2}),
     ("pm 12x4", {"pm_count": 12, "pm_step": 4}),
     ("pm 10x5", {"pm_count": 10, "pm_step": 5}),
-    ("pm 14", {"pm_count": 14}),
-    ("fast, pm 14", {"quality": "fast", "pm_count": 14}),
-    ("fast, pm 12", {"quality": "fast", "pm_count": 12}),
+    # the fast tier keeps its 2 far targets 9 steps apart beyond these (it replaces only the
+    # values left at their defaults)
+    ("fast, pm 13x2", {"quality": "fast", "pm_count": 13, "pm_step": 2}),
+    ("fast, pm 20x2", {"quality": "fast", "pm_count": 20, "pm_step": 2}),
     ("fast", {"quality": "fast"}),
 )
 #: Largest PSNR loss (dB) of ``fast`` against ``full``: whole frame, motion region.

@@ -104,7 +104,9 @@ def test_slow_motion_windows_put_cfsr_first(table, scene):
     on = table[("cfsr", scene)]
     for key in ("psnr_all", "psnr_motion"):
         assert on[key] > off[key] + 0.5, (scene, key, on[key], off[key])
-    if scene != "vibrate_mover":  # without them CFSR trails CSR or TFA there
+    # without them CFSR trails CSR or TFA there; on the pan it no longer does since its static
+    # span is centred on t and PatchMatch takes 24 targets 2 steps apart (0.65 dB ahead)
+    if scene not in ("vibrate_mover", "pan"):
         others = [*BASELINES, "csr"]
         gap = max(_best(table, scene, k, others)[0] - off[k] for k in ("psnr_all", "psnr_motion"))
         assert gap > 0, scene

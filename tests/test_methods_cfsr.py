@@ -317,16 +317,17 @@ def test_cfsr_masks_and_static_skip():
     assert inter > 0.7
     assert rate.dtype == np.float32 and np.isfinite(rate).all()
     # a static scene: no dynamic pixel, the output is the plain static estimate (isi by
-    # default, the paper's TFP with static_estimator=tfp)
+    # default, the paper's TFP with static_estimator=tfp), over 160 steps centred on t
     from cfsr.methods.tfp import static_rate
 
     static = if_spikes(np.linspace(0.1, 0.9, 24 * 48).reshape(24, 48), 800)
     r, m = cfsr.reconstruct(static, "cfsr", [700], return_masks=True)
     assert not m["coarse"].any() and not m["fine"].any()
-    want = static_rate(static, 700, window=160, estimator="isi", max_isi=200)
+    want = static_rate(static, 700, window=160, mode="centred", estimator="isi", max_isi=200)
     np.testing.assert_array_equal(r[0], want)
     r = cfsr.reconstruct(static, "cfsr", [700], static_estimator="tfp")
-    np.testing.assert_array_equal(r[0], cfsr.reconstruct(static, "tfp", [700], window=160)[0])
+    tfp = cfsr.reconstruct(static, "tfp", [700], window=160, mode="centred")
+    np.testing.assert_array_equal(r[0], tfp[0])
 
 
 def test_cfsr_refines_the_moving_region():
@@ -482,3 +483,18 @@ def test_cfsr_settings_take_the_quality_tier():
     assert s.pm_radius == 12  # set by hand: kept
     assert s == CfsrSettings.of(effective_params(p))
     assert s.coarse.dynamic_estimator == "tfi" and s.coarse.T == s.T
+
+
+def test_pm_offsets_near_then_far_and_the_window_reaches_the_last():
+    from cfsr.methods.cfsr_fine import cfsr_window, pm_offsets
+    from cfsr.methods.registry import get_method, resolve_params
+
+    m = get_method("cfsr")
+    p = resolve_params(m, {"pm_step": 2, "pm_count": 15, "pm_far_count": 2, "pm_far_step": 9})
+    assert pm_offsets(p) == (*range(2, 31, 2), 39, 48)
+    assert pm_offsets({**p, "pm_count": 0}) == (9, 18)
+    base = resolve_params(m, {"pm_step": 2, "pm_count": 24, "still_reach": 0, "slow_reach": 0,
+                              "mog_sides": "past"})
+    far = {**base, "pm_count": 15, "pm_far_count": 2, "pm_far_step": 9}
+    # the frame's window reads the last target's TFI: 48 + max_isi steps on each side
+    assert cfsr_window(far)[1] == cfsr_window(base)[1] == 48 + base["max_isi"]

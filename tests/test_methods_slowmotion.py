@@ -52,6 +52,20 @@ def test_a_change_shortens_the_window_on_either_side():
     np.testing.assert_allclose(r[0, :2], [0.3, 0.2], rtol=0.1)  # the rate on t's side
 
 
+def test_a_rung_between_doublings_keeps_the_window_a_change_leaves():
+    # constant within 60 steps of t, then a change: the doubling ladder stops at 32 steps, the
+    # one with rungs at 1.5x at 48, and its rate is the constant one's over more spikes
+    n = 801
+    rates = np.where(np.abs(np.arange(n) - 400) <= 60, 0.25, 0.45)
+    src = _window([_if_pixel(rates, phase) for phase in (0.1, 0.6)])
+    cand = np.ones((1, 2), bool)
+    r1, half1, _ = slow_rates(src, 400, cand, reach=128)
+    r2, half2, count2 = slow_rates(src, 400, cand, reach=128, rungs=2)
+    assert (half1 == 32).all() and (half2 == 48).all(), (half1, half2)
+    np.testing.assert_allclose(r2, 0.25, rtol=1.0 / (97 * 0.25 - 2))
+    assert (count2 > 97 * 0.25 - 1).all()
+
+
 def test_slow_drift_gets_a_longer_window_than_fast():
     n = 801
     t = np.arange(n)
@@ -89,6 +103,7 @@ def test_only_candidates_are_estimated():
 _WINDOW_RULES = {
     **{k: prm.default for k, prm in SLOW_PARAMS.items()},
     "slow_reach": 128,
+    "slow_rungs": 1,  # the doubling ladder, as slow_rates by default
     "slow_slack": 1.0,
     "slow_min": 8,
     "slow_intervals": 4,

@@ -88,12 +88,15 @@ def test_cfsr_takes_the_gate_on_a_static_window_and_equals_the_full_pipeline(mon
         mp.setattr(cf, "_history", no_history)
         got, mg = cfsr.reconstruct(s, "cfsr", [t], return_masks=True)
     np.testing.assert_array_equal(got, full)
-    want = static_rate(s, t, window=160, estimator="isi", max_isi=200)  # the default estimator
+    # the default estimator over its default span, 160 steps centred on t
+    want = static_rate(s, t, window=160, mode="centred", estimator="isi", max_isi=200)
     np.testing.assert_array_equal(got[0], np.clip(want, 0, 1))
     assert not mg["fine"].any() and not mg["coarse"].any()
     # the paper's TFP
     got = cfsr.reconstruct(s, "cfsr", [t], static_estimator="tfp")
-    np.testing.assert_array_equal(got[0], np.clip(tfp_rate(s, t, window=160), 0, 1))
+    np.testing.assert_array_equal(
+        got[0], np.clip(tfp_rate(s, t, window=160, mode="centred"), 0, 1)
+    )
     # another TFP span than the gate's: the output is still that span's static estimate
     for est in ("tfp", "isi"):
         got = cfsr.reconstruct(

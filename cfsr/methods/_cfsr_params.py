@@ -21,6 +21,11 @@ from cfsr.methods.tfp import STATIC_ESTIMATORS
 #: full-frame pass); pixel sizes within a sensor's extent. Products (mog_frames * mog_stride,
 #: pm_count * pm_step) are checked as a whole by resolve_params.
 FINE_PARAMS: dict[str, Param] = {
+    # the static estimate's 160 steps centred on t, as CSR's span (CSR_ONLY_PARAMS): a slow
+    # drift or vibration biases a trailing span by its 80-step lag (drift 0.001 px/step, motion
+    # region +0.12 dB, lowlight +0.14, pan +0.09, no scene or REDS file lower by 0.07); the
+    # frame's window after t (PatchMatch and TFI reach, 248 steps) already covers the 80 steps
+    "tfp_mode": replace(CSR_PARAMS["tfp_mode"], default="centred"),
     "mog_frames": Param(
         12, "frames", "CSR frames K fed to MOG, ending at t", minimum=1, maximum=256
     ),
@@ -125,8 +130,21 @@ FINE_PARAMS: dict[str, Param] = {
     "dilate": Param(
         2, "pixels", "grow the fine mask by this radius (safety margin)", minimum=0, maximum=64
     ),
-    "pm_step": Param.steps(3, "spacing of PatchMatch frames t +- step*i"),
-    "pm_count": Param(16, "frames", "PatchMatch frames on each side of t", minimum=0, maximum=64),
+    # 24 targets 2 steps apart (the same 48-step reach as 16 x 3, half again the samples):
+    # REDS +0.23 (every file up), disk +0.26, fan +0.28, car +0.44, no scene lower than -0.02,
+    # about 1.2x the CPU of a full frame; the fast tier takes 15 x 2 + 2 x 9 (QUALITY_TIERS)
+    "pm_step": Param.steps(2, "spacing of PatchMatch frames t +- step*i"),
+    "pm_count": Param(24, "frames", "PatchMatch frames on each side of t", minimum=0, maximum=64),
+    # a sparser tail keeps the reach of the slow movers (the pan) with fewer frames: the fast
+    # tier's 15 x 2 + 2 x 9 (QUALITY_TIERS)
+    "pm_far_count": Param(
+        0,
+        "frames",
+        "PatchMatch frames on each side beyond the pm_count ones, pm_far_step apart",
+        minimum=0,
+        maximum=64,
+    ),
+    "pm_far_step": Param.steps(8, "spacing of the far PatchMatch frames"),
     "pm_patch": Param(6, "pixels", "patch side", minimum=1, maximum=16),
     "pm_iters": Param(2, "", "PatchMatch scans", minimum=0, maximum=16),
     "pm_radius": Param(16, "pixels", "largest random-search radius", minimum=0, maximum=4096),
@@ -154,7 +172,8 @@ FINE_PARAMS: dict[str, Param] = {
         "",
         "quality tier: full (every default) or fast (4 MOG frames 96 steps apart on the past "
         "alone, a 200-step distinction window, 300-step still reach, PatchMatch search radius "
-        "8: about 0.8x the CPU of full, within 0.15 dB of it on the simulator scenes); "
+        "8, 17 PatchMatch targets a side (15 two steps apart, 2 nine apart): about 0.7x the "
+        "CPU of full, within 0.5 dB of it on the simulator scenes); "
         "parameters set to other values than their defaults keep them",
         choices=("full", "fast"),
     ),
@@ -248,9 +267,14 @@ QUALITY_TIERS: dict[str, dict[str, Any]] = {
         "T": 200,
         "still_reach": 300,
         # the first PatchMatch target's full search from 8 pixels instead of 16 (no scene
-        # moved). The PatchMatch targets stay: they are the largest cost, but 14 a side cost
-        # the pan 0.63 dB and 12 the car 0.48-0.67 (the slow movers average noise over them)
+        # moved), and 17 PatchMatch targets a side instead of 24: 15 two steps apart, then 2
+        # nine apart (t +- 2, ..., 30, 39, 48: the same 48-step reach for the slow pan, full's
+        # spacing near t for the turning disk). 16 x 3 fell 0.53 dB behind full on the small
+        # disk of tests/test_cfsr_tiers.py, 20 x 2 0.68 on the pan, 16 x 2 + 40, 48 cost 6 %
         "pm_radius": 8,
+        "pm_count": 15,
+        "pm_far_count": 2,
+        "pm_far_step": 9,
     },
 }
 
@@ -301,6 +325,8 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     dilate: int  #: pixels
     pm_step: int  #: steps
     pm_count: int  #: frames on each side of t
+    pm_far_count: int  #: frames on each side beyond the pm_count ones
+    pm_far_step: int  #: steps between the far frames
     pm_patch: int  #: pixels
     pm_iters: int
     pm_radius: int  #: pixels
@@ -337,6 +363,12 @@ class CfsrSettings(CoarseSettings, SlowSettings):
         dynamic estimate: Eq. 9's sharp rate under ``mog_sides = both``."""
         return replace(self.coarse, dynamic_estimator="steady", dynamic_span=int(self.mog_span))
 
+    @cached_property
+    def pm_offsets(self) -> tuple[int, ...]:
+        """Steps from t of the PatchMatch frames on each side, ascending: ``pm_step * i`` for
+        ``i = 1..pm_count``, then ``pm_far_count`` more ``pm_far_step`` apart beyond them."""
+        return pm_offsets(self)
+
     @property
     def two_sided(self) -> bool:
         """Whether Eq. 9 tests the sharp rate at t against both backgrounds (``mog_sides``)."""
@@ -347,3 +379,15 @@ class CfsrSettings(CoarseSettings, SlowSettings):
         """These settings but for the carry rule's own: outputs under another key carry
         nothing from one to the next."""
         return replace(self, carry_span=0, carry_gap=1)
+
+
+def pm_offsets(p: Mapping[str, Any] | Settings) -> tuple[int, ...]:
+    """Steps from t of the PatchMatch frames on each side, ascending (Eq. 12's neighbouring
+    frames): ``pm_step * i`` for ``i = 1..pm_count``, then ``pm_far_count`` more
+    ``pm_far_step`` apart beyond them. ``p``: resolved parameters or a settings object."""
+    get = p.get if isinstance(p, Mapping) else lambda k: getattr(p, k)
+    step, count = int(get("pm_step")), int(get("pm_count"))
+    near = [step * i for i in range(1, count + 1)]
+    end = near[-1] if near else 0
+    far = int(get("pm_far_step"))
+    return (*near, *(end + far * j for j in range(1, int(get("pm_far_count")) + 1)))

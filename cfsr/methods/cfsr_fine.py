@@ -31,7 +31,8 @@ the calibration of every default are in docs/methods.md):
    PatchMatch still works on the mask before this step, and the still pixels left out take
    their run's rate.
 5. **Fine reconstruction** (:mod:`cfsr.methods.patchmatch`): TFI at t and at ``t +- pm_step*i``,
-   ``i = 1..pm_count`` (clipped to the window), computed only on the 8 x 8 tiles within reach
+   ``i = 1..pm_count``, and ``pm_far_count`` more ``pm_far_step`` apart (clipped to the
+   window), computed only on the 8 x 8 tiles within reach
    of a fine-mask pixel's own patch and one tile more (the rest hold NaN: never matched);
    PatchMatch on a guide (TFA over ``pm_guide`` intervals, Gaussian ``pm_sigma``) matches the
    6 x 6 patch of every fine-mask pixel in each frame, and the raw TFI rates at the matches
@@ -92,6 +93,7 @@ from cfsr.methods._cfsr_params import (
     QUALITY_TIERS,
     CfsrSettings,
     effective_params,
+    pm_offsets,
 )
 from cfsr.methods.atsr import atsr_fuse, atsr_fuse_isi
 from cfsr.methods.csr import (
@@ -126,6 +128,7 @@ __all__ = [
     "fast_config",
     "fine_mask",
     "fine_stage",
+    "pm_offsets",
 ]
 
 
@@ -171,7 +174,7 @@ def cfsr_window(p: Mapping[str, Any] | CfsrSettings) -> tuple[int, int]:
     cb, ca = csr_window(s.coarse)  # the static TFP at t
     # the MOG history's frames: TFP over mog_window steps
     hb, ha = csr_window(replace(s.coarse, tfp_window=s.mog_window, static_span=0))
-    pm = s.pm_step * s.pm_count
+    pm = s.pm_offsets[-1] if s.pm_offsets else 0  # the farthest PatchMatch frame
     reach = s.max_isi
     before = max(cb, hb + (s.mog_frames - 1) * s.mog_stride, pm + reach, s.daisi_span + reach)
     after = max(ca, ha, pm + reach, s.daisi_span + reach)
@@ -737,12 +740,17 @@ def _refine(
         x0, x1 = tx.min() * TILE, min(w, (tx.max() + 1) * TILE)
         domain = region[y0:y1, x0:x1]
     else:
+        # frames and guides on the whole frame, but PatchMatch on the region alone, as the
+        # adaptive pipeline: the temporal schedule searches blocks of the matched pixels of a
+        # row (their end pixels' predictions, their distinct bests, their neighbours'
+        # offsets), so matching the pixels outside the region too changed the candidates of
+        # the region's edge pixels, and with them the ghosts' rates outside the fine mask
+        # (0.6 % at one pixel with pm_count 24 x pm_step 2); their matches were never used
         y0, y1, x0, x1 = 0, h, 0, w
         tiles = None
-        domain = np.ones((h, w), bool)
-    offs = [s.pm_step * i for i in range(1, s.pm_count + 1)]
-    # the reference t first, then t -+ step*i inside the window
-    tcs = [center] + [c for s in offs for c in (center - s, center + s) if 0 <= c < n]
+        domain = region
+    # the reference t first, then t -+ each offset inside the window
+    tcs = [center] + [c for d in s.pm_offsets for c in (center - d, center + d) if 0 <= c < n]
     # the guides go straight into the buffer the search reads (no padded copy of 33 frames)
     padded, view = padded_guides(len(tcs), int(y1 - y0), int(x1 - x0), int(s.pm_patch))
     raw, guides = pm_frames(

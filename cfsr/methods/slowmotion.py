@@ -63,8 +63,8 @@ __all__ = [
 ]
 
 #: Half-widths (steps) of the centred windows tried, shortest first, doubling: the longest
-#: consistent window is found to within half its length (a ladder 1.5x apart costs twice as
-#: much and scored the same within 0.15 dB on six scenes).
+#: consistent window is found to within half its length (``slow_rungs`` = 2, the default,
+#: adds the 1.5x rungs between them: within a third).
 HALVES = (2, 4, 8, 16, 32, 64, 128, 256, 512)
 
 #: The window rule outside the fine region; the fine region's own rule (slow_fine_min,
@@ -93,6 +93,20 @@ SLOW_PARAMS: dict[str, Param] = {
         minimum=0,
         maximum=MAX_WINDOW_STEPS // 4,
     ),
+    # one rung between doublings (1.5x) from 8 steps up: the window a pixel reaches is then
+    # found to within a third of its length; a still pixel whose 257-step window fails kept 129
+    # steps where 193 held (the 0.5 px 20 Hz vibration and the 0.001 px/step drift, where
+    # CSR's 160-step rule beat CFSR outside its fine region); with the static span centred:
+    # vibrate +0.29, drift +0.15, pan +0.17, no scene lower than -0.06 (noisy motion region),
+    # REDS -0.01, about 1.5 % more CPU per frame
+    "slow_rungs": Param(
+        2,
+        "rungs",
+        "slow motion: windows tried per doubling of the half-width from 8 steps (1: 2, 4, 8, "
+        "16, ...; 2: also 12, 24, 48, ...)",
+        minimum=1,
+        maximum=2,
+    ),
     "slow_slack": Param(
         1.0,
         "",
@@ -115,8 +129,12 @@ SLOW_PARAMS: dict[str, Param] = {
     "slow_fine_intervals": replace(
         _SLOW_INTERVALS, default=12, help="slow motion: as slow_intervals, inside the fine region"
     ),
+    # three eighths: with 24 PatchMatch targets 2 steps apart PatchMatch's average is the
+    # better half inside the fine region; at 1/2 the windows cost the noisy scene's motion
+    # region 0.10 dB against the stage off (30.43 against 30.53, 2000 steps), at 3/8 nothing,
+    # and no other scene, REDS file or sweep cell moved by more than 0.04 (REDS mean +0.01)
     "slow_fine_weight": Param(
-        0.5,
+        0.375,
         "",
         "slow motion: weight of the window's rate against PatchMatch's inside the fine region "
         "(0: PatchMatch's alone)",
@@ -173,10 +191,12 @@ SLOW_PARAMS: dict[str, Param] = {
         minimum=0,
         maximum=MAX_WINDOW_STEPS,
     ),
-    # halfway: PatchMatch's average over other pixels cancels their gain spread, which a
-    # single pixel's window keeps (full weight: noisy scene -0.8 dB in the motion region)
+    # three quarters: PatchMatch's average over other pixels cancels their gain spread, which
+    # a single pixel's window keeps (full weight: noisy scene -0.8 dB in the motion region);
+    # over half, the 0.5 px 200 Hz vibration's motion region +0.33 (first, TFA 39.93 before
+    # 39.63), drift +0.12, pan +0.11, no scene lower (alone), REDS -0.01
     "slow_region_weight": Param(
-        0.5,
+        0.75,
         "",
         "slow motion: share of PatchMatch's weight the window's rate takes over in the slow "
         "class (0: class off, 1: the window's rate alone)",
@@ -319,6 +339,7 @@ class SlowSettings(Settings):
     CFSR's settings extend them."""
 
     slow_reach: int  #: steps, half-width of the longest window (0: stage off)
+    slow_rungs: int  #: windows per doubling of the half-width (1 or 2)
     slow_slack: float
     slow_min: int  #: steps
     slow_intervals: int  #: intervals
@@ -341,9 +362,10 @@ def slow_reach(p: Mapping[str, Any] | SlowSettings) -> int:
     return int(SlowSettings.of(p).slow_reach)
 
 
-def _halves(reach: int, n_before: int, n_after: int) -> np.ndarray:
+def _halves(reach: int, n_before: int, n_after: int, rungs: int = 1) -> np.ndarray:
     top = min(int(reach), int(n_before), int(n_after))
-    hs = [h for h in HALVES if h < top] + [top]
+    ladder = list(HALVES) + ([h * 3 // 2 for h in HALVES if h >= 8] if rungs >= 2 else [])
+    hs = [h for h in ladder if h < top] + [top]
     return np.array(sorted(set(h for h in hs if h >= 1)), np.int64)
 
 
@@ -355,6 +377,7 @@ def slow_rates(
     reach: int,
     slack: float = 1.0,
     halves: Sequence[int] | None = None,
+    rungs: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rate over the longest consistent centred window, and its half-width, per pixel.
 
@@ -372,6 +395,8 @@ def slow_rates(
         Factor on the exact bounds (1: exact integrate-and-fire bounds).
     halves : sequence of int, optional
         Half-widths to try (steps, ascending); default :data:`HALVES` up to ``reach``.
+    rungs : int
+        With the default ladder: 2 adds the 1.5x half-widths from 12 steps (``slow_rungs``).
 
     Returns
     -------
@@ -401,7 +426,7 @@ def slow_rates(
     if not cand.any() or reach <= 0:
         return rate, half, count
     hs = (
-        _halves(reach, center, src.n - 1 - center)
+        _halves(reach, center, src.n - 1 - center, rungs)
         if halves is None
         else np.asarray(sorted(halves), np.int64)
     )
@@ -465,7 +490,9 @@ def slow_fuse(
         return rate
     h, w = rate.shape
     cand = np.ones((h, w), bool) if active is None else active
-    slow, half, count = slow_rates(src, center, cand, reach=reach, slack=float(s.slow_slack))
+    slow, half, count = slow_rates(
+        src, center, cand, reach=reach, slack=float(s.slow_slack), rungs=int(s.slow_rungs)
+    )
     whole = count - 1  # whole intervals between the window's first and last spike
     # under temporal noise only the slow class below: a still pixel's window ends early there
     take = (half >= int(s.slow_min)) & (whole >= int(s.slow_intervals)) & (not noisy)
