@@ -4,6 +4,7 @@ by hand: rerun the benchmark, then this script).
     ./tasks bench --out docs/bench                  # accuracy.json (and pareto.png)
     ./tasks bench --throughput --out docs/bench     # throughput.json
     ./tasks bench --sweep --out docs/bench          # sweep.json
+    ./tasks bench --tiers --out docs/bench          # tiers.json
     python scripts/results.py                       # docs/results.md, docs/bench/*.png
     python scripts/results.py --check               # exit 1 if docs/results.md is stale
 
@@ -253,6 +254,53 @@ def sweep_section(sw: dict[str, Any]) -> list[str]:
     return out
 
 
+def tiers_section(ti: dict[str, Any]) -> list[str]:
+    rows = [r for r in ti.get("tiers", []) if _ok(r.get("psnr_all"))]
+    labels: list[str] = []
+    for r in rows:
+        if r["tier"] not in labels:
+            labels.append(r["tier"])
+    out = ["## Quality tiers", "",
+           "`cfsr bench --tiers`: CFSR's `full` tier, its `fast` tier and the other settings "
+           "tried for it, against CSR, on every simulated scene (1,400 steps, outputs at "
+           "492, 700 and 892); CPU ms per isolated frame on one numba thread, on the scene "
+           "named. A setting keeps the bars when it loses at most 0.5 dB (whole frame) and "
+           "1.0 dB (motion region) against `full` on every scene.", "",
+           "| setting | CPU ms (x full) | worst loss against full, whole / motion (scene) "
+           "| bars |", "|---|---|---|---|"]
+    for lab in labels:
+        sub = [r for r in rows if r["tier"] == lab]
+        cost = next((r for r in sub if _ok(r.get("ms_per_frame"))), None)
+        ms = (f"{cost['ms_per_frame']:.0f} ({_f(cost.get('x_full_cost'), '.2f')}, "
+              f"{cost['scene']})" if cost else "-")
+        if lab == "full" or not sub or "d_all" not in sub[0]:
+            out.append(f"| {lab} | {ms} | - | - |")
+            continue
+        wa = min(sub, key=lambda r: r["d_all"])
+        motion = [r for r in sub if _ok(r.get("d_motion"))]
+        wm = min(motion, key=lambda r: r["d_motion"]) if motion else None
+        fails = [r["scene"] for r in sub if not r.get("within_bars")]
+        bars = "kept" if not fails else "fails on " + ", ".join(fails)
+        if lab == "csr":
+            bars = "for scale"
+        worst = (f"{-wa['d_all']:.2f} ({wa['scene']}) / "
+                 + (f"{-wm['d_motion']:.2f} ({wm['scene']})" if wm else "-"))
+        out.append(f"| {lab} | {ms} | {worst} | {bars} |")
+    out += ["", "Per scene, PSNR whole / motion region (dB):", "",
+            "| scene | full | fast | CSR |", "|---|---|---|---|"]
+    scenes: list[str] = []
+    for r in rows:
+        if r["scene"] not in scenes:
+            scenes.append(r["scene"])
+    for sc in scenes:
+        cell = {r["tier"]: r for r in rows if r["scene"] == sc}
+        out.append(f"| {sc} | " + " | ".join(
+            f"{_f(cell[t]['psnr_all'], '.2f')} / {_f(cell[t].get('psnr_motion'), '.2f')}"
+            if t in cell else "-" for t in ("full", "fast", "csr")) + " |")
+    out.append("")
+    return out
+
+
 def render(folder: Path = BENCH) -> str:
     acc, tp, sw = (_load(n, folder) for n in ("accuracy.json", "throughput.json", "sweep.json"))
     out = ["# Results", "",
@@ -272,6 +320,10 @@ def render(folder: Path = BENCH) -> str:
     if sw:
         out += sweep_section(sw)
         out += [f"Machine: {_machine(sw)}.", ""]
+    ti = _load("tiers.json", folder)
+    if ti:
+        out += tiers_section(ti)
+        out += [f"Machine: {_machine(ti)}.", ""]
     return "\n".join(out).rstrip() + "\n"
 
 
