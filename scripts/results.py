@@ -45,6 +45,17 @@ def _order(names: Sequence[str]) -> list[str]:
     return sorted(set(names), key=_rank)
 
 
+def _distinct(rows: Sequence[dict[str, Any]], key: str) -> list[Any]:
+    """The values of ``key`` in ``rows``, each once, in the order they first appear."""
+    return list(dict.fromkeys(r[key] for r in rows))
+
+
+def _table_head(title: str, intro: str, cols: Sequence[str]) -> list[str]:
+    """A section's title, its introduction and the head of its table."""
+    return [f"## {title}", "", intro, "", "| " + " | ".join(cols) + " |",
+            "|" + "---|" * len(cols)]
+
+
 def _load(name: str, folder: Path) -> dict[str, Any] | None:
     p = folder / name
     return json.loads(p.read_text()) if p.exists() else None
@@ -228,15 +239,13 @@ def throughput_section(tp: dict[str, Any]) -> list[str]:
 
 def sweep_section(sw: dict[str, Any]) -> list[str]:
     rows = sw.get("rows", [])
-    scen = []
-    for r in rows:
-        if r["scenario"] not in scen:
-            scen.append(r["scenario"])
-    out = ["## Cost follows the scene", "",
-           "`cfsr bench --sweep`: CFSR with `adaptive` on (skip what the scene does not need) "
-           "and off, as the moving part of the scene grows; TFP for scale.", "",
-           "| scene | moving | TFP ms | CFSR adaptive ms | always-full ms | speed-up | PSNR "
-           "adaptive - full (dB) |", "|---|---|---|---|---|---|---|"]
+    scen = _distinct(rows, "scenario")
+    out = _table_head(
+        "Cost follows the scene",
+        "`cfsr bench --sweep`: CFSR with `adaptive` on (skip what the scene does not need) "
+        "and off, as the moving part of the scene grows; TFP for scale.",
+        ("scene", "moving", "TFP ms", "CFSR adaptive ms", "always-full ms", "speed-up",
+         "PSNR adaptive - full (dB)"))
     for s in scen:
         sub = [r for r in rows if r["scenario"] == s]
         tfp = next((r for r in sub if r["method"] == "tfp"), None)
@@ -256,18 +265,16 @@ def sweep_section(sw: dict[str, Any]) -> list[str]:
 
 def tiers_section(ti: dict[str, Any]) -> list[str]:
     rows = [r for r in ti.get("tiers", []) if _ok(r.get("psnr_all"))]
-    labels: list[str] = []
-    for r in rows:
-        if r["tier"] not in labels:
-            labels.append(r["tier"])
-    out = ["## Quality tiers", "",
-           "`cfsr bench --tiers`: CFSR's `full` tier, its `fast` tier and the other settings "
-           "tried for it, against CSR, on every simulated scene (1,400 steps, outputs at "
-           "492, 700 and 892); CPU ms per isolated frame on one numba thread, on the scene "
-           "named. A setting keeps the bars when it loses at most 0.5 dB (whole frame) and "
-           "1.0 dB (motion region) against `full` on every scene.", "",
-           "| setting | CPU ms (x full) | worst loss against full, whole / motion (scene) "
-           "| bars |", "|---|---|---|---|"]
+    labels = _distinct(rows, "tier")
+    out = _table_head(
+        "Quality tiers",
+        "`cfsr bench --tiers`: CFSR's `full` tier, its `fast` tier and the other settings "
+        "tried for it, against CSR, on every simulated scene (1,400 steps, outputs at "
+        "492, 700 and 892); CPU ms per isolated frame on one numba thread, on the scene "
+        "named. A setting keeps the bars when it loses at most 0.5 dB (whole frame) and "
+        "1.0 dB (motion region) against `full` on every scene.",
+        ("setting", "CPU ms (x full)", "worst loss against full, whole / motion (scene)",
+         "bars"))
     for lab in labels:
         sub = [r for r in rows if r["tier"] == lab]
         cost = next((r for r in sub if _ok(r.get("ms_per_frame"))), None)
@@ -288,11 +295,7 @@ def tiers_section(ti: dict[str, Any]) -> list[str]:
         out.append(f"| {lab} | {ms} | {worst} | {bars} |")
     out += ["", "Per scene, PSNR whole / motion region (dB):", "",
             "| scene | full | fast | CSR |", "|---|---|---|---|"]
-    scenes: list[str] = []
-    for r in rows:
-        if r["scene"] not in scenes:
-            scenes.append(r["scene"])
-    for sc in scenes:
+    for sc in _distinct(rows, "scene"):
         cell = {r["tier"]: r for r in rows if r["scene"] == sc}
         out.append(f"| {sc} | " + " | ".join(
             f"{_f(cell[t]['psnr_all'], '.2f')} / {_f(cell[t].get('psnr_motion'), '.2f')}"

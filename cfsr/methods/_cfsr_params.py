@@ -20,6 +20,9 @@ from cfsr.methods.tfp import STATIC_ESTIMATORS
 #: counts stay within what one frame can afford (each history or PatchMatch frame is a
 #: full-frame pass); pixel sizes within a sensor's extent. Products (mog_frames * mog_stride,
 #: pm_count * pm_step) are checked as a whole by resolve_params.
+#: PatchMatch frames on each side of t (``pm_count``; ``pm_far_count`` is the same range)
+FRAMES_A_SIDE = Param(24, "frames", "PatchMatch frames on each side of t", minimum=0, maximum=64)
+
 FINE_PARAMS: dict[str, Param] = {
     # the static estimate's 160 steps centred on t, as CSR's span (CSR_ONLY_PARAMS): a slow
     # drift or vibration biases a trailing span by its 80-step lag (drift 0.001 px/step, motion
@@ -134,15 +137,12 @@ FINE_PARAMS: dict[str, Param] = {
     # REDS +0.23 (every file up), disk +0.26, fan +0.28, car +0.44, no scene lower than -0.02,
     # about 1.2x the CPU of a full frame; the fast tier takes 15 x 2 + 2 x 9 (QUALITY_TIERS)
     "pm_step": Param.steps(2, "spacing of PatchMatch frames t +- step*i"),
-    "pm_count": Param(24, "frames", "PatchMatch frames on each side of t", minimum=0, maximum=64),
+    "pm_count": FRAMES_A_SIDE,
     # a sparser tail keeps the reach of the slow movers (the pan) with fewer frames: the fast
     # tier's 15 x 2 + 2 x 9 (QUALITY_TIERS)
-    "pm_far_count": Param(
-        0,
-        "frames",
-        "PatchMatch frames on each side beyond the pm_count ones, pm_far_step apart",
-        minimum=0,
-        maximum=64,
+    "pm_far_count": replace(
+        FRAMES_A_SIDE, default=0, help="PatchMatch frames on each side beyond the pm_count "
+        "ones, pm_far_step apart"
     ),
     "pm_far_step": Param.steps(8, "spacing of the far PatchMatch frames"),
     "pm_patch": Param(6, "pixels", "patch side", minimum=1, maximum=16),
