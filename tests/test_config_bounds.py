@@ -28,8 +28,9 @@ def test_tfstp_largest_warmup_fits_its_window_limit():
     # the state may start a grid step before t - warmup, so warmup's range leaves room for it
     m = get_method("tfstp")
     top = m.params["warmup"].maximum
-    assert sum(m.window({"warmup": top})) <= m.max_span
-    assert resolve_params(m, {"warmup": top})["warmup"] == top
+    p = resolve_params(m, {"warmup": top})  # a method's window takes resolved parameters
+    assert p["warmup"] == top
+    assert sum(m.window(p)) <= m.max_span
 
 
 def test_every_parameter_has_a_documented_range():
