@@ -85,6 +85,7 @@ class RateMeter:
                 break
         return (v1 - v0) / (t1 - t0) if t1 > t0 else 0.0
 
+
 def real_time_factor(steps_per_s: float, rate_hz: float) -> float:
     """Steps taken in per second over the sensor's steps per second (1: keeping up with the
     camera); 0 while the sensor rate is unknown (0)."""

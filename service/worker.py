@@ -164,8 +164,6 @@ FALLBACK_AFTER_S = 1.0
 #: and is allowed COLD_TASK_HANG_S
 TASK_HANG_S = 120.0
 COLD_TASK_HANG_S = 900.0
-#: the worker's counters (WorkerCounters) that its status shows as they are, by their names
-_COUNTERS_SHOWN = ("frames_out", "gaps", "dropped_late", "dropped_order", "fallback_frames")
 
 
 class _Worker:
@@ -1040,7 +1038,11 @@ class WorkerSupervisor:
                 first_frame_s=(time.monotonic() - first) if first else None,
                 steps_per_s=steps_per_s,
                 real_time_factor=real_time_factor(steps_per_s, rate_hz),
-                **{name: getattr(st, name) for name in _COUNTERS_SHOWN},
+                frames_out=st.frames_out,
+                gaps=st.gaps,
+                dropped_late=st.dropped_late,
+                dropped_order=st.dropped_order,
+                fallback_frames=st.fallback_frames,
                 workers=self.workers,
                 threads_per_worker=self.threads,
                 quality=QualityShare(

@@ -10,7 +10,14 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
-from cfsr.methods.csr import CSR_PARAMS, CSR_PRESETS, CoarseSettings, CsrSettings, tfi_dynamic
+from cfsr.methods.csr import (
+    CSR_ONLY_PARAMS,
+    CSR_PARAMS,
+    CSR_PRESETS,
+    CoarseSettings,
+    CsrSettings,
+    tfi_dynamic,
+)
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Param, Settings
 from cfsr.methods.slowmotion import SLOW_PARAMS, SlowSettings
 from cfsr.methods.tfp import STATIC_ESTIMATORS
@@ -67,10 +74,11 @@ FINE_PARAMS: dict[str, Param] = {
         "background of the history before t and of its mirror after t)",
         choices=("past", "both"),
     ),
-    "mog_span": Param.steps(
-        16,
-        "both: centred span of the rate at t compared with the backgrounds (steady span rule)",
-        minimum=2,
+    # the steady span rule, as CSR's dynamic_span reads it (CfsrSettings.sharp)
+    "mog_span": replace(
+        CSR_ONLY_PARAMS["dynamic_span"],
+        help="both: centred span of the rate at t compared with the backgrounds (steady span "
+        "rule)",
     ),
     # half the frames of the history before t over about the same reach: the second MOG
     # costs in proportion to its frames, and 12 x 32 steps gave the same masks within 0.003

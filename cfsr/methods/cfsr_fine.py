@@ -115,7 +115,7 @@ from cfsr.methods.slowmotion import slow_fuse, slow_reach
 from cfsr.methods.staticgate import active_tiles, span_counts, span_isi_rate, static_gate
 from cfsr.methods.steady import steady_range
 from cfsr.methods.still import still_pixels
-from cfsr.methods.tfp import tfp_span
+from cfsr.methods.tfp import tfp_extent, tfp_span
 
 __all__ = [
     "FINE_PARAMS",
@@ -186,17 +186,17 @@ def cfsr_window(p: Mapping[str, Any] | CfsrSettings) -> tuple[int, int]:
         after = max(after, int(s.still_reach))
     before, after = max(before, slow_reach(s)), max(after, slow_reach(s))  # slow-motion windows
     if s.adaptive and s.static_tol >= 0:  # the static gate's two spans end with the TFP's
-        _, tfp_end = tfp_span(0, 1 << 62, static_length(s), s.tfp_mode)  # steps after 0, +1
-        before = max(before, 2 * s.static_window - tfp_end)
+        tfp_after = tfp_extent(static_length(s), s.tfp_mode)[1]
+        before = max(before, 2 * s.static_window - tfp_after - 1)
     return before, after
 
 
 def sharp_span(s: CfsrSettings) -> tuple[int, int]:
     """Steps before/after t that the sharp rate at t reads (``mog_span`` centred, the TFI's
     ``max_isi`` range for a pixel with fewer than two spikes in it)."""
-    span = int(s.mog_span)
+    before, after = tfp_extent(int(s.mog_span), "centred")
     reach = int(s.max_isi)
-    return max(span // 2, reach), max(span - span // 2 - 1, reach)
+    return max(before, reach), max(after, reach)
 
 
 def future_reach(s: CfsrSettings) -> int:
@@ -479,10 +479,10 @@ def fine_stage(
     over the last two ``static_window`` spans (the static gate) or no fine-mask pixel ->
     the plain TFP; otherwise TFI frames and guides only on the tiles within a patch's reach
     of a fine-mask pixel (:func:`pm_tiles`) and PatchMatch only on the fine-mask pixels.
-    ``adaptive=False`` is the always-full pipeline: MOG on the whole frame, TFI frames, guides
-    and PatchMatch on every pixel, then the same output rule (TFP where the fine mask is empty,
-    ATSR with the fine mask otherwise), so the two differ only where PatchMatch's propagation
-    from pixels outside the mask changes a match.
+    ``adaptive=False`` is the always-full pipeline: MOG on the whole frame, TFI frames and
+    guides on the whole frame, PatchMatch on the same region, then the same output rule (TFP
+    where the fine mask is empty, ATSR with the fine mask otherwise), so the two differ only
+    where a match would reach beyond the tiles the adaptive pipeline computes.
 
     ``p`` runs under its ``quality`` tier (:class:`CfsrSettings`, :func:`effective_params`).
     ``seed`` is the absolute step of t (PatchMatch's draws are keyed by it). ``memo`` (a dict
@@ -751,7 +751,7 @@ def _refine(
         domain = region
     # the reference t first, then t -+ each offset inside the window
     tcs = [center] + [c for d in s.pm_offsets for c in (center - d, center + d) if 0 <= c < n]
-    # the guides go straight into the buffer the search reads (no padded copy of 33 frames)
+    # the guides go straight into the buffer the search reads (no padded copy of every frame)
     padded, view = padded_guides(len(tcs), int(y1 - y0), int(x1 - x0), int(s.pm_patch))
     raw, guides = pm_frames(
         src,

@@ -18,7 +18,7 @@ A window with no dynamic pixel needs only TFP: the TFI stage is skipped and the 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -29,7 +29,14 @@ from cfsr.methods.distinction import coarse_masks, distinct_isi_counts_packed
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
 from cfsr.methods.steady import DISTINCTIONS, check_static, noise_level, steadiness, steady_mask
 from cfsr.methods.tfi import tfi_rate_packed, tfi_rates
-from cfsr.methods.tfp import static_rate, static_rate_packed, tfp_rate, tfp_rate_packed, tfp_span
+from cfsr.methods.tfp import (
+    static_rate,
+    static_rate_packed,
+    tfp_extent,
+    tfp_rate,
+    tfp_rate_packed,
+    tfp_span,
+)
 
 #: Static-region estimators of CSR and CFSR at t (:func:`static_checked`).
 STATIC_CHOICES = ("steady", "isi", "tfp")
@@ -214,8 +221,9 @@ class CsrSettings(CoarseSettings):
 
 def tfi_dynamic(c: CoarseSettings) -> CsrSettings:
     """``c``'s coarse parameters with the TFI (Eq. 7) as the dynamic region's estimate."""
-    kept = {f.name: getattr(c, f.name) for f in fields(CoarseSettings)}
-    return CsrSettings(**kept, dynamic_estimator="tfi", dynamic_span=_TFI_SPAN)
+    return CsrSettings(
+        **c.pick(*CoarseSettings.names()), dynamic_estimator="tfi", dynamic_span=_TFI_SPAN
+    )
 
 
 #: ``dynamic_span`` of :func:`tfi_dynamic` (not read under the TFI)
@@ -234,11 +242,7 @@ def static_length(p: Mapping[str, Any] | CoarseSettings) -> int:
 def csr_window(p: Mapping[str, Any] | CsrSettings) -> tuple[int, int]:
     """Steps before/after t that one CSR frame needs."""
     s = CsrSettings.of(p)
-    w = static_length(s)
-    if s.tfp_mode == "trailing":
-        tb, ta = w - 1, 0
-    else:
-        tb, ta = w // 2, w - w // 2 - 1
+    tb, ta = tfp_extent(static_length(s), s.tfp_mode)
     reach = s.max_isi  # TFI at t; the steady rules read inside the same range
     if s.dynamic_estimator == "steady":
         reach = max(reach, s.dynamic_span // 2 + 1)

@@ -38,7 +38,6 @@ __all__ = ["TILE", "match_reach", "pm_tiles", "pm_frames", "isi_from_times"]
 
 # spike words (:mod:`cfsr._words`): one bit per step, WORD_STEPS (64) steps per uint64 word;
 # step s of the span is bit s & 63 of word s >> 6
-_WORD_BITS = WORD_STEPS
 _WORD_SHIFT = WORD_STEPS.bit_length() - 1
 _WORD_MASK = WORD_STEPS - 1
 
@@ -132,7 +131,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
                     q += 1
                 i = pre[q]
                 while i < r1:
-                    i = word_spikes(words[k, q], lo + _WORD_BITS * q, tv, i)
+                    i = word_spikes(words[k, q], lo + WORD_STEPS * q, tv, i)
                     q += 1
                 f0_b = _rank(words, k, pre, qs[kc - 1, 1], ms[kc - 1, 1])
                 f1_a = _rank(words, k, pre, qs[0, 2], ms[0, 2])

@@ -37,7 +37,7 @@ import numpy as np
 from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, Settings, register
 from cfsr.methods.tfa import adaptive_rate
 from cfsr.methods.tfi import tfi_rate
-from cfsr.methods.tfp import tfp_rate
+from cfsr.methods.tfp import tfp_extent, tfp_rate
 
 __all__ = ["motion_confidence", "graph_cut_labels", "snm_rate"]
 
@@ -102,7 +102,9 @@ def snm_rate(
 ) -> tuple[np.ndarray, np.ndarray]:
     """SNM rate (spikes/step, float32) and motion labels (bool) at ``center``."""
     s = SnmSettings.of(p)
-    conf = motion_confidence(spikes, center, **s.pick("long_window", "max_isi", "motion_sigma"))
+    conf = motion_confidence(
+        spikes, center, long_window=s.long_window, max_isi=s.max_isi, motion_sigma=s.motion_sigma
+    )
     labels = graph_cut_labels(conf, s.smoothness)
     static = tfp_rate(spikes, center, window=s.long_window, mode="centred")
     if not labels.any():
@@ -120,8 +122,8 @@ def snm_rate(
 
 def _window(p: Mapping[str, Any]) -> tuple[int, int]:
     s = SnmSettings.of(p)
-    lw = s.long_window
-    return max(lw // 2, s.max_isi), max(lw - lw // 2 - 1, s.max_isi)
+    before, after = tfp_extent(s.long_window, "centred")
+    return max(before, s.max_isi), max(after, s.max_isi)
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:

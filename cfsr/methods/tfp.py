@@ -15,6 +15,7 @@ from cfsr._words import _load_u64, trailing_zeros
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
 
 __all__ = [
+    "tfp_extent",
     "tfp_rate",
     "tfp_rate_packed",
     "tfp_span",
@@ -304,14 +305,25 @@ def tfp_span(center: int, n: int, window: int, mode: str) -> tuple[int, int]:
     ``trailing``: the ``window`` steps ending at ``center`` (Eq. 4, causal, for live use);
     ``centred``: ``window`` steps with ``center`` in the middle (offline). Clipped at the ends.
     """
+    lo, hi = _offsets(window, mode)
+    return max(0, center + lo), min(n, center + hi)
+
+
+def _offsets(window: int, mode: str) -> tuple[int, int]:
+    """``[lo, hi)`` of a TFP window relative to its centre."""
     if mode == "trailing":
-        a, b = center - window + 1, center + 1
-    elif mode == "centred":
-        a = center - window // 2
-        b = a + window
-    else:
-        raise ValueError(f"mode must be 'trailing' or 'centred', got {mode!r}")
-    return max(0, a), min(n, b)
+        return 1 - window, 1
+    if mode == "centred":
+        return -(window // 2), window - window // 2
+    raise ValueError(f"mode must be 'trailing' or 'centred', got {mode!r}")
+
+
+def tfp_extent(window: int, mode: str) -> tuple[int, int]:
+    """Steps ``(before, after)`` the centre that a ``window``-step TFP placed as ``mode``
+    reads (:func:`tfp_span` before clipping): ``trailing`` ``(window - 1, 0)``, ``centred``
+    the window with the centre in its middle."""
+    lo, hi = _offsets(window, mode)
+    return -lo, hi - 1
 
 
 def tfp_rate(
@@ -339,9 +351,7 @@ class TfpSettings(Settings):
 
 def _window(p: Mapping[str, Any]) -> tuple[int, int]:
     s = TfpSettings.of(p)
-    if s.mode == "trailing":
-        return s.window - 1, 0
-    return s.window // 2, s.window - s.window // 2 - 1
+    return tfp_extent(s.window, s.mode)
 
 
 def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:

@@ -102,20 +102,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-hooks", action="store_true", help=argparse.SUPPRESS)
 
 
-#: the flags whose value is the setting of the same name, as given
-_SAME_NAME = (
-    "host",
-    "port",
-    "speed",
-    "replay_mode",
-    "method",
-    "max_fps",
-    "ring_seconds",
-    "threads",
-    "test_hooks",
-)
-
-
 def build_settings(args: argparse.Namespace):
     from cfsr_live.service import sources
     from cfsr_live.service.settings import Settings, SourceSpec, default_data_dir
@@ -124,12 +110,20 @@ def build_settings(args: argparse.Namespace):
     picked = [s for k in sources.kinds() if (s := k.spec_from_args(args)) is not None]
     spec = picked[0] if picked else SourceSpec(kind=DEFAULT_SOURCE)
     return Settings(
-        **{name: getattr(args, name) for name in _SAME_NAME},
+        host=args.host,
+        port=args.port,
         token=args.token or None,
         data_dir=args.data_dir or default_data_dir(),
         source=spec,
+        speed=args.speed,
         loop=not args.no_loop,
+        replay_mode=args.replay_mode,
+        method=args.method,
+        max_fps=args.max_fps,
+        ring_seconds=args.ring_seconds,
         **({} if args.workers is None else {"workers": args.workers}),
+        threads=args.threads,
+        test_hooks=args.test_hooks,
         warmup=not args.no_warmup,
         allowed_hosts=list(args.allow_host),
         allowed_origins=list(args.allow_origin),
