@@ -53,6 +53,7 @@ __all__ = [
     "PoolResult",
     "TaskError",
     "default_workers",
+    "release_queue",
     "ignore_stop_signals",
     "stop_signals_blocked",
     "pool_outputs",
@@ -222,6 +223,24 @@ def ignore_stop_signals() -> None:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
 
 
+def release_queue(q: Any, timeout: float = 1.0) -> None:
+    """Close a multiprocessing queue this process created, so that its semaphores are
+    released by this thread, not by the queue's feeder thread.
+
+    The feeder thread (started by the first ``put``) holds the queue's write lock and
+    semaphore until it ends; when it ends after the owner dropped the queue, it is the
+    feeder that runs the semaphores' release (unlink, then tell the resource tracker). A
+    process leaving right then kills the daemon feeder between the two, and the tracker
+    reports "1 leaked semaphore" for a name that is already gone. So the feeder is given
+    ``timeout`` seconds to flush and end (microseconds normally; a pipe that nobody drains
+    would keep it for ever, hence the bound and no wait at exit)."""
+    q.close()
+    q.cancel_join_thread()
+    feeder = getattr(q, "_thread", None)  # CPython's QueueFeederThread; None before a put
+    if feeder is not None:
+        feeder.join(timeout)
+
+
 def _shm_folder() -> str:
     return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
 
@@ -361,8 +380,7 @@ class FramePool:
                 p.join(2)
         for q in [*self._task_qs, self._result_q]:
             if q is not None:
-                q.cancel_join_thread()
-                q.close()
+                release_queue(q)
         self._unlink_regions()
         self._regions.clear()
         for mm in self._maps:

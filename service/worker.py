@@ -777,8 +777,13 @@ class WorkerSupervisor:
         self._thread.start()
 
     def _spawn(self) -> None:
+        from cfsr.pool import release_queue
+
         with self._lock:
             self.ready.clear()
+            for q in (self._cmd_q, self._evt_q):  # a restart: the dead worker's queues
+                if q is not None:
+                    release_queue(q)
             self._cmd_q = self._ctx.Queue()
             self._evt_q = self._ctx.Queue()
             self._proc = self._ctx.Process(
@@ -823,10 +828,11 @@ class WorkerSupervisor:
                     proc.join(2)
         if self._thread is not None:
             self._thread.join(2)
+        from cfsr.pool import release_queue
+
         for q in (self._cmd_q, self._evt_q):
             if q is not None:
-                q.cancel_join_thread()
-                q.close()
+                release_queue(q)
 
     # -- control ----------------------------------------------------------------------------------
     def configure(self, config: WorkerConfig) -> int:

@@ -185,3 +185,28 @@ def test_a_pool_whose_owner_dies_leaves_no_process(tmp_path):
     while time.monotonic() < end and any(alive(p) for p in pids):
         time.sleep(0.2)
     assert not [p for p in pids if alive(p)], "pool processes outlived their owner"
+
+
+def test_a_released_queue_frees_its_semaphores_in_the_callers_thread():
+    """A queue's semaphores are unlinked by the thread that drops the queue, not later by its
+    feeder thread: a process that leaves right after a close (the live worker does) would
+    otherwise kill the feeder half-way and the resource tracker would report a leak."""
+    import gc
+    import multiprocessing as mp
+
+    from cfsr.pool import release_queue
+
+    if not Path("/dev/shm").is_dir():
+        pytest.skip("POSIX semaphores are not files in /dev/shm on this system")
+    gc.disable()  # the release must not depend on a collection
+    try:
+        for _ in range(20):  # the feeder's end races the drop: a few tries show it
+            q = mp.get_context("spawn").Queue()
+            q.put(("task", 1))  # starts the feeder thread, which holds the write lock
+            names = [lk._semlock.name.lstrip("/") for lk in (q._rlock, q._wlock, q._sem)]
+            release_queue(q)
+            del q
+            left = [n for n in names if (Path("/dev/shm") / f"sem.{n}").exists()]
+            assert left == [], f"semaphores still linked after the queue was dropped: {left}"
+    finally:
+        gc.enable()
