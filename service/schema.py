@@ -108,7 +108,7 @@ class WorkerCounters:
                            "methods)", int)
     q_fast: int = _counter("frames shown at CFSR's fast tier", int)
     dropped_late: int = _counter("frames computed but not shown: too late, or under a "
-                                 "replaced configuration (no spike data lost)", int)
+                                 "replaced configuration or source (no spike data lost)", int)
     dropped_order: int = _counter("frames computed but not shown: a newer step was shown "
                                   "first (no spike data lost)", int)
     fallback: int = _counter("1 while TFP frames stand in for a first frame that compiles", int)

@@ -141,8 +141,9 @@ class ConfigAck(NamedTuple):
 # ----------------------------------------------------------------------------------------------
 class _Task(NamedTuple):
     """A frame handed to the pool: its step, when its newest spike arrived, the tier, the
-    config version it was computed under, when and to which process it went, and whether it
-    is that process's first frame of its method and tier (which may wait on the compiler)."""
+    config version it was computed under, when and to which process it went, whether it
+    is that process's first frame of its method and tier (which may wait on the compiler),
+    and the step clock its step counts on (:meth:`_Worker._restart_clock`)."""
 
     step: int
     arrival: float
@@ -152,6 +153,7 @@ class _Task(NamedTuple):
     process: int
     method: str
     cold: bool
+    clock: int
 
 
 #: a frame whose newest spike arrived longer ago than this is not shown (counted late)
@@ -205,7 +207,9 @@ class _Worker:
         self._lost_base = self._overrun_base = self._torn_base = self._gaps_base = 0
         self._skip_base = 0
         self._next_out = 0.0
+        #: (end step, host time) of the blocks ingested, on the current step clock
         self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
+        self._clock = 0  # how many times the step clock started again
         self.slow_first = 0.0  # test hook (Inject "slow_first")
         # not waiting for the processes to start: the heartbeat and the first frames of the
         # loop do not wait on their imports
@@ -231,6 +235,21 @@ class _Worker:
         self._credit = 0.0
         self.put("fallback", 0.0)
 
+    def _restart_clock(self) -> None:
+        """The step clock started again (another source, or a camera that restarted its
+        counter): forget all that is keyed by the old clock's steps. Kept, the new frames
+        waited until the new clock passed the old one, for as long as the old source had
+        played (up to the arrival log's 13 s): dropped as late (their arrival looked up
+        among the old steps), not submitted (older than the last submitted step) or dropped
+        as out of order (older than the last shown). Frames still computing on the old clock
+        are dropped when they come back."""
+        self._clock += 1
+        self._arrival.clear()
+        self._last_submit = self._last_shown = None
+        if self._ready:
+            self.bump("dropped_late", len(self._ready))
+            self._ready.clear()
+
     def bump(self, name: str, by: float = 1.0) -> None:
         self.st[name] += by
 
@@ -254,6 +273,7 @@ class _Worker:
             self.ring.close()
         self.ring = SpikeRing.attach(ring_path)
         self.layout = layout
+        self._restart_clock()  # a new ring is a new source: its steps count from its own start
         self.reader = self.ring.reader(start="latest", register=self.config.deterministic, keep=1)
         self._build()
 
@@ -324,6 +344,8 @@ class _Worker:
                 break
             from cfsr_live.driver.source import BlockFlags
 
+            if self._arrival and blk.index < self._arrival[-1][0]:
+                self._restart_clock()  # a step clock never goes back: it started again
             if blk.flags & BlockFlags.DISCONTINUITY:
                 rec.reset(blk.index)
             rec.push(blk.data, blk.index)
@@ -399,7 +421,7 @@ class _Worker:
                              delay=delay)
         cold = (k, cfg.method) not in self._warm
         self._tasks[tag] = _Task(
-            t, arrival, quality, self.config.version, now, k, cfg.method, cold
+            t, arrival, quality, self.config.version, now, k, cfg.method, cold, self._clock
         )
         self._last_submit = t
         self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
@@ -430,8 +452,8 @@ class _Worker:
             elif ms > 0:
                 old = self._ema.get(task.quality)
                 self._ema[task.quality] = ms if old is None else 0.8 * old + 0.2 * ms
-            if task.version != self.config.version:
-                self.bump("dropped_late")  # computed under a config since replaced
+            if task.version != self.config.version or task.clock != self._clock:
+                self.bump("dropped_late")  # computed under a config or a clock since replaced
                 continue
             self._ready[t] = (task, out, ms)
         shown = self._flush()
@@ -444,7 +466,8 @@ class _Worker:
         while self._ready:
             t = min(self._ready)
             v = self.config.version
-            if any(k.version == v and k.step < t for k in self._tasks.values()):
+            if any(k.version == v and k.clock == self._clock and k.step < t
+                   for k in self._tasks.values()):
                 break
             task, out, ms = self._ready.pop(t)
             first, self._first_pending = self._first_pending, False

@@ -8,6 +8,7 @@ import json
 import os
 import socket
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -163,6 +164,24 @@ def back_on_a_dat(server):
     finally:
         server.put("/api/source", json={"id": "file:a.dat"})
         server.put("/api/replay", json={"speed": 1.0, "playing": True, "loop": True})
+
+
+def test_a_switched_source_shows_its_frames_at_once(back_on_a_dat):
+    """The source switched to shows its own frames within seconds, however long the one
+    before it played: a new source's steps count from its own start, and the worker used to
+    wait until they passed the old source's (13 s after 13 s of play)."""
+    server = back_on_a_dat
+    server.wait_for(lambda s: (s["frame_step"] or 0) > 10 * 40_000, timeout=60,
+                    what="10 s of the first source")
+    old = server.status()["frame_step"]
+    t0 = time.monotonic()
+    assert server.put("/api/source", json={"id": "file:sub/b.dat"}).status_code == 200
+    st = server.wait_for(lambda s: s["source"]["id"] == "file:sub/b.dat"
+                         and (s["frame_step"] or old) < old, timeout=30,
+                         what="a frame of the new source")
+    took = time.monotonic() - t0
+    print(f"first frame of the new source {took:.2f} s after the switch")
+    assert took < 5, (took, st["worker"])
 
 
 def test_sources_only_from_the_data_folder(back_on_a_dat, data_dir):

@@ -4,6 +4,8 @@ restarted by its supervisor."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from livehelpers import wait_until
@@ -332,3 +334,43 @@ def test_frames_of_a_ready_method_stand_in_while_a_first_frame_waits(rec, pool_p
     assert _frames(slot, 2, method="csr", timeout=60), "no frames after the first one waited"
     st = sup.status(40_000.0).status
     assert st.fallback_method is None and st.fallback_frames >= 3
+
+
+def test_a_restarted_step_clock_shows_its_frames_at_once(rec):
+    """The step clock starts again (a camera that restarted its counter; another source on
+    the same ring): the new clock's frames are shown at once. The worker used to wait until
+    the new clock passed the old one, as long as the old source had played: it submitted
+    nothing older than its last frame and took the new frames' arrival from the old steps
+    (so they were dropped as late)."""
+    from cfsr_live.driver.source import BlockFlags
+
+    ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
+    slot = FrameSlot.create(max_pixels=H * W)
+    sup = WorkerSupervisor(slot, _cfg(), workers=2)
+    rng = np.random.default_rng(0)
+
+    def play(start: int, n: int, flags: int = 0) -> None:
+        for a in range(start, start + n, 64):
+            data = rng.integers(0, 256, (64, rec.layout.frame_bytes), dtype=np.uint8)
+            ring.write(a, data, flags=flags if a == start else 0)
+
+    try:
+        sup.start(str(ring.path), rec.layout)
+        assert sup.ready.wait(120), "worker did not start"
+        old_end = 64 * 64
+        play(0, old_end)
+        wait_until(lambda: (f := slot.read()) is not None and f.step > old_end // 2, 120,
+                   "frames of the first clock")
+        time.sleep(1.5)  # the first clock's blocks are now older than a frame may be late
+        new_end = 64 * 12
+        play(0, new_end, BlockFlags.DISCONTINUITY)  # the counter starts again at 0
+        t0 = time.monotonic()
+        f = wait_until(lambda: (f := slot.read()) is not None and f.step < new_end and f, 20,
+                       lambda: f"a frame of the new clock (latest {slot.read().step}, "
+                       f"dropped late {slot.stats().dropped_late})")
+        assert time.monotonic() - t0 < 10, "the new clock's first frame came late"
+        assert f.step < new_end
+    finally:
+        sup.stop()
+        ring.close()
+        slot.close()
