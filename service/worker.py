@@ -250,6 +250,10 @@ class _Worker:
             self.bump("dropped_late", len(self._ready))
             self._ready.clear()
 
+    def _current(self, task: _Task) -> bool:
+        """Whether ``task`` was computed under the running config and step clock."""
+        return task.version == self.config.version and task.clock == self._clock
+
     def bump(self, name: str, by: float = 1.0) -> None:
         self.st[name] += by
 
@@ -452,7 +456,7 @@ class _Worker:
             elif ms > 0:
                 old = self._ema.get(task.quality)
                 self._ema[task.quality] = ms if old is None else 0.8 * old + 0.2 * ms
-            if task.version != self.config.version or task.clock != self._clock:
+            if not self._current(task):
                 self.bump("dropped_late")  # computed under a config or a clock since replaced
                 continue
             self._ready[t] = (task, out, ms)
@@ -465,9 +469,7 @@ class _Worker:
         shown = False
         while self._ready:
             t = min(self._ready)
-            v = self.config.version
-            if any(k.version == v and k.clock == self._clock and k.step < t
-                   for k in self._tasks.values()):
+            if any(self._current(k) and k.step < t for k in self._tasks.values()):
                 break
             task, out, ms = self._ready.pop(t)
             first, self._first_pending = self._first_pending, False

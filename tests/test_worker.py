@@ -368,8 +368,7 @@ def test_a_restarted_step_clock_shows_its_frames_at_once(rec):
         f = wait_until(lambda: (f := slot.read()) is not None and f.step < new_end and f, 20,
                        lambda: f"a frame of the new clock (latest {slot.read().step}, "
                        f"dropped late {slot.stats().dropped_late})")
-        assert time.monotonic() - t0 < 10, "the new clock's first frame came late"
-        assert f.step < new_end
+        assert time.monotonic() - t0 < 10, ("the new clock's first frame came late", f.step)
     finally:
         sup.stop()
         ring.close()
