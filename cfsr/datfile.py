@@ -44,7 +44,9 @@ __all__ = [
     "write_json_atomic",
     "MAX_SIDE_PX",
     "MAX_FRAME_PIXELS",
+    "MIN_RATE_HZ",
     "MAX_RATE_HZ",
+    "MIN_GAIN",
     "MAX_GAIN",
     "MAX_FRAMES",
     "MAX_SIDECAR_BYTES",
@@ -61,11 +63,20 @@ MAX_SIDE_PX = 65_535
 #: Pixels per stored frame (2**24 = 4096 x 4096, 2 MiB packed). Spike sensors built so far are
 #: at most about 1000 x 1000; beyond this one 256-frame block would no longer fit in memory.
 MAX_FRAME_PIXELS = 1 << 24
-#: Steps per second, in (0, 1e7]: the sensor samples at 40,000; 10 MHz is beyond any made.
+#: Steps per second, in [1, 1e7]: the sensor samples at 40,000; 10 MHz is beyond any made.
+#: Below one step a second a replay would show no frame for minutes (at 1e-300, never) while
+#: reporting itself as streaming.
+MIN_RATE_HZ = 1.0
 MAX_RATE_HZ = 1e7
-#: Display gain in spikes/step (the firing rate shown as white), in (0, 1]: no pixel can fire
-#: more than once per step.
+#: Display gain in spikes/step (the firing rate shown as white), in [1e-6, 1]: no pixel can
+#: fire more than once per step; below one spike per million steps (25 s) 1/gain overflows the
+#: live frame header's float32 and every pixel shows as 0 or 255. The one owner of this bound:
+#: the service's API takes it from here.
+MIN_GAIN = 1e-6
 MAX_GAIN = 1.0
+#: Digits a sidecar number may have: more is no camera's value (and Python refuses to convert
+#: over 4,300 digits with a message that names neither the file nor the key).
+MAX_SIDECAR_DIGITS = 40
 #: Frames a sidecar may claim: 2**40 steps (318 days at 40 kHz).
 MAX_FRAMES = 1 << 40
 #: A sidecar is a few hundred bytes of JSON; a larger one is refused, not read into memory.
@@ -130,6 +141,36 @@ def _as_number(value: Any) -> float | None:
     return v if math.isfinite(v) else None
 
 
+class _LongNumber:
+    """A JSON number written with more than :data:`MAX_SIDECAR_DIGITS` digits, kept as its
+    length only (never converted: that costs time quadratic in the digits)."""
+
+    def __init__(self, text: str) -> None:
+        self.digits = len(text)
+
+    def __repr__(self) -> str:
+        return f"<a number of {self.digits} digits>"
+
+
+def _parse_number(text: str) -> Any:
+    if len(text) > MAX_SIDECAR_DIGITS:
+        return _LongNumber(text)
+    return float(text) if any(c in text for c in ".eE") else int(text)
+
+
+def _long_number_at(value: Any, path: str = "") -> tuple[str, _LongNumber] | None:
+    """The key path and value of the first :class:`_LongNumber` inside ``value`` (None if
+    there is none)."""
+    if isinstance(value, _LongNumber):
+        return path, value
+    items = value.items() if isinstance(value, Mapping) else (
+        enumerate(value) if isinstance(value, list) else ())
+    for k, v in items:
+        if (found := _long_number_at(v, f"{path}.{k}" if path else str(k))) is not None:
+            return found
+    return None
+
+
 def validate_sidecar(meta: Mapping[str, Any], where: str | os.PathLike) -> dict[str, Any]:
     """Check every sidecar value the library uses against what a real camera can reach.
 
@@ -153,14 +194,18 @@ def validate_sidecar(meta: Mapping[str, Any], where: str | os.PathLike) -> dict[
         ``width``, ``height`` 1..:data:`MAX_SIDE_PX` pixels, ``head_cols`` >= 0 with the stored
         row at most :data:`MAX_SIDE_PX` and the frame at most :data:`MAX_FRAME_PIXELS`;
         ``flipud``/``fliplr`` booleans; ``frame_bytes`` equal to the geometry's; ``n_frames``
-        0..:data:`MAX_FRAMES`; ``rate_hz`` in (0, :data:`MAX_RATE_HZ`] steps/s; ``gain`` null or
-        in (0, :data:`MAX_GAIN`] spikes/step.
+        0..:data:`MAX_FRAMES`; ``rate_hz`` in [:data:`MIN_RATE_HZ`, :data:`MAX_RATE_HZ`]
+        steps/s; ``gain`` null or in [:data:`MIN_GAIN`, :data:`MAX_GAIN`] spikes/step.
     """
     out = dict(meta)
 
     def bad(key: str, expected: str, *, geometry: bool = False) -> SpikeFileError:
         what = "wrong geometry" if geometry else "bad sidecar value"
         return SpikeFileError(f"{where}: {what}: {key} = {_show(meta[key])}, expected {expected}")
+
+    if (long := _long_number_at(meta)) is not None:
+        raise SpikeFileError(f"{where}: bad sidecar value: {long[0]} = {long[1]!r}, expected "
+                             f"a number of at most {MAX_SIDECAR_DIGITS} digits")
 
     for key, lo in (("width", 1), ("height", 1), ("head_cols", 0)):
         if key in meta:
@@ -197,13 +242,13 @@ def validate_sidecar(meta: Mapping[str, Any], where: str | os.PathLike) -> dict[
             raise bad("sidecar_version", "an integer >= 1")
     if "rate_hz" in meta:
         v = _as_number(meta["rate_hz"])
-        if v is None or not 0 < v <= MAX_RATE_HZ:
-            raise bad("rate_hz", f"a number in (0, {MAX_RATE_HZ:.0f}] steps/s")
+        if v is None or not MIN_RATE_HZ <= v <= MAX_RATE_HZ:
+            raise bad("rate_hz", f"a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:.0f}] steps/s")
         out["rate_hz"] = v
     if meta.get("gain") is not None:
         v = _as_number(meta["gain"])
-        if v is None or not 0 < v <= MAX_GAIN:
-            raise bad("gain", f"null or a number in (0, {MAX_GAIN:g}] spikes/step")
+        if v is None or not MIN_GAIN <= v <= MAX_GAIN:
+            raise bad("gain", f"null or a number in [{MIN_GAIN:g}, {MAX_GAIN:g}] spikes/step")
         out["gain"] = v
     return out
 
@@ -245,7 +290,8 @@ def read_sidecar(path: str | os.PathLike) -> dict[str, Any] | None:
                 if not chunk:
                     break
                 raw += chunk
-            meta = json.loads(raw.decode("utf-8"))
+            meta = json.loads(raw.decode("utf-8"), parse_int=_parse_number,
+                              parse_float=_parse_number)
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
             why = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
             raise SpikeFileError(f"{sp}: unreadable sidecar ({why})") from exc
@@ -448,10 +494,11 @@ def read_dat(
             f"expected at most {MAX_SIDE_PX} pixels a side and {MAX_FRAME_PIXELS} a frame"
         )
     if rate_hz is not None and not (
-        _as_number(rate_hz) is not None and 0 < rate_hz <= MAX_RATE_HZ
+        _as_number(rate_hz) is not None and MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ
     ):
         raise SpikeFileError(
-            f"{p}: rate_hz = {rate_hz!r}, expected a number in (0, {MAX_RATE_HZ:.0f}] steps/s"
+            f"{p}: rate_hz = {rate_hz!r}, expected a number in [{MIN_RATE_HZ:g}, "
+            f"{MAX_RATE_HZ:.0f}] steps/s"
         )
     size = st.st_size
     if size == 0:

@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cfsr.datfile import MIN_GAIN
+
 #: frames per second the worker (or one client) may ask for: below 0.1 a viewer would wait
 #: minutes for a frame
 MAX_FPS_RANGE = (0.1, 240.0)
@@ -22,8 +24,9 @@ RECORDING_NAME_RE = re.compile(RECORDING_NAME_PATTERN)
 #: recording over it, and a switch to one is refused (422) naming both numbers
 MAX_DISPLAY_PIXELS = 1 << 20
 #: smallest display gain (spikes/step shown as white): one spike per million steps (25 s);
-#: below, 1/gain overflows the frame header's float32
-MIN_DISPLAY_GAIN = 1e-6
+#: below, 1/gain overflows the frame header's float32. The same bound as a sidecar's gain
+#: (one owner: :data:`cfsr.datfile.MIN_GAIN`)
+MIN_DISPLAY_GAIN = MIN_GAIN
 
 __all__ = [
     "MAX_DISPLAY_PIXELS",
