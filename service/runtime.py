@@ -9,7 +9,6 @@ Data flow: ``Source.read_block`` -> :class:`~cfsr_live.driver.acquisition.Acquis
 from __future__ import annotations
 
 import logging
-import math
 import os
 import threading
 import time
@@ -151,10 +150,17 @@ class Runtime:
     def _ring_for(self, src: Source) -> SpikeRing:
         lay = src.info.layout
         slot_frames = max(1, src.info.max_block_frames)
-        want = self.settings.ring_seconds * src.info.rate_hz
-        n_slots = max(8, math.ceil(want / slot_frames))
+        # ring_seconds of the source, or less where that is over the byte cap: the rate and
+        # geometry may come from any file in the data folder (ValueError -> 422 naming both)
+        cap = self.settings.ring_max_bytes
+        try:
+            n_slots = SpikeRing.slots_for(self.settings.ring_seconds * src.info.rate_hz,
+                                          slot_frames, lay.frame_bytes, max_bytes=cap)
+        except ValueError as exc:
+            raise ValueError(f"{src.info.name}: {exc} (cfsr serve --ring-max-mb)") from None
         blocking = self.settings.replay_mode == "fast"
-        return SpikeRing.create(n_slots, slot_frames, lay.frame_bytes, blocking=blocking)
+        return SpikeRing.create(n_slots, slot_frames, lay.frame_bytes, blocking=blocking,
+                                max_bytes=cap)
 
     def _check_geometry(self, src: Source) -> None:
         """ValueError (HTTP 422) when ``src``'s frames are larger than the display's frame

@@ -29,7 +29,12 @@ import numpy as np
 from cfsr_live.shm.files import attach_shared_file, create_shared_file, release_shared_file
 from cfsr_live.shm.seqlock import WRITING, Seqlock
 
-__all__ = ["RING_PREFIX", "RingBlock", "RingReader", "SpikeRing"]
+__all__ = ["DEFAULT_MAX_BYTES", "RING_PREFIX", "RingBlock", "RingReader", "SpikeRing"]
+
+#: the default cap on one ring's size, bytes (1 GiB: 2 s of a 400 x 250 sensor at 40 kHz). A
+#: ring is sized from a source's rate and geometry, which may come from a file anyone can put
+#: in the data folder; without a cap a sidecar claiming 10 MHz asked for tens of GB.
+DEFAULT_MAX_BYTES = 1 << 30
 
 #: name prefix of the spike ring's shared-memory file
 RING_PREFIX = "cfsr-ring"
@@ -103,6 +108,30 @@ class SpikeRing:
         return off + n_slots * slot_frames * frame_bytes
 
     @classmethod
+    def slots_for(
+        cls, frames: float, slot_frames: int, frame_bytes: int, *, max_bytes: int,
+        min_slots: int = 8,
+    ) -> int:
+        """Slots for a ring of at least ``frames`` frames (and ``min_slots`` slots), fewer
+        where that would be over ``max_bytes`` bytes: the cap wins over the wished duration.
+
+        Raises
+        ------
+        ValueError
+            Even ``min_slots`` slots are over ``max_bytes`` (one line with both numbers).
+        """
+        want = max(min_slots, -(-int(min(frames, 1 << 62)) // slot_frames))
+        per_slot = _SLOT_HEADER + slot_frames * frame_bytes  # page rounding of headers aside
+        fit = max(0, (max_bytes - _HEADER_BYTES - 4096) // per_slot)
+        if fit < min_slots:
+            need = cls.nbytes_for(min_slots, slot_frames, frame_bytes)
+            raise ValueError(
+                f"a ring of {min_slots} blocks of {slot_frames} frames x {frame_bytes} bytes "
+                f"needs {need} bytes, over the ring's cap of {max_bytes} bytes"
+            )
+        return min(want, fit)
+
+    @classmethod
     def create(
         cls,
         n_slots: int,
@@ -111,13 +140,18 @@ class SpikeRing:
         *,
         directory: str | os.PathLike | None = None,
         blocking: bool = False,
+        max_bytes: int = DEFAULT_MAX_BYTES,
     ) -> SpikeRing:
+        """A new ring of ``n_slots`` slots of ``slot_frames`` frames of ``frame_bytes`` bytes;
+        ValueError (before any file is made) if it would be over ``max_bytes`` bytes."""
         if n_slots < 2 or slot_frames < 1 or frame_bytes < 1:
             raise ValueError(
                 f"ring needs n_slots >= 2, slot_frames >= 1, frame_bytes >= 1; got "
                 f"{n_slots}, {slot_frames}, {frame_bytes}"
             )
         size = cls.nbytes_for(n_slots, slot_frames, frame_bytes)
+        if size > max_bytes:
+            raise ValueError(f"a ring of {size} bytes is over the ring's cap of {max_bytes} bytes")
         path, mm = create_shared_file(RING_PREFIX, size, directory)
         hdr = np.frombuffer(mm, np.int64, _HEADER_BYTES // 8, 0)
         hdr[_H_NSLOTS], hdr[_H_SLOTFRAMES], hdr[_H_FRAMEBYTES] = n_slots, slot_frames, frame_bytes
