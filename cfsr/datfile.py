@@ -10,6 +10,8 @@ replay device) reads through :class:`DatReader` instead. Our writers always add
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import math
 import numbers
@@ -533,9 +535,17 @@ class DatWriter:
 
     The file only ever holds whole frames: when a write fails part-way (``ENOSPC`` on a full
     disk, ``EFBIG``, an I/O error) the partial frame is cut off before the error is raised, and
-    :attr:`n_frames` counts the frames that are really on disk. The sidecar is written to a
-    temporary file and renamed over ``NAME.dat.json``, so a reader never sees half a sidecar
-    (a full disk used to leave a 0-byte one that made the recording unreadable).
+    :attr:`n_frames` counts the frames that are really on disk.
+
+    The sidecar exists before the first byte of spikes: opening writes a provisional one
+    (geometry and rate, ``"complete": false``, no ``n_frames``) padded with blanks to
+    :data:`SIDECAR_RESERVE_BYTES`, so its disk space is held from the start. :meth:`close`
+    writes the final one to a temporary file renamed over it (a reader never sees half a
+    sidecar); when the disk is full for that, it overwrites the reserved space in place. So a
+    recording stays readable with its own geometry however the disk fills (before, another
+    writer filling the disk lost the sidecar, and a 256 x 128 recording was read as 400 x 250).
+    Opening fails, leaving no file, when not even the reserve fits. :meth:`discard` closes and
+    removes both files (a recording that got no frame is not left behind as an empty file).
     """
 
     def __init__(
@@ -556,6 +566,52 @@ class DatWriter:
         # unbuffered: each write reports how many bytes reached the file, so a failure can be
         # trimmed back to the last whole frame
         self._fh = open(self.path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+        self._reserve_sidecar()
+
+    # -- the sidecar's storage (FolderDatWriter keeps it in an open folder instead) ----------
+    def _put_sidecar(self, data: bytes) -> None:
+        """Replace the sidecar by ``data`` atomically (temporary file + rename)."""
+        _write_bytes_atomic(sidecar_path(self.path), data)
+
+    def _put_sidecar_in_place(self, data: bytes) -> None:
+        """Overwrite the existing sidecar's bytes with ``data`` (no new disk space needed)."""
+        with open(sidecar_path(self.path), "r+b", buffering=0) as fh:
+            _overwrite(fh.fileno(), data)
+
+    def _remove_files(self) -> None:
+        """Remove the ``.dat`` and its sidecar."""
+        for p in (self.path, sidecar_path(self.path)):
+            p.unlink(missing_ok=True)
+
+    # -- the sidecar's life ----------------------------------------------------------------------
+    def _reserve_sidecar(self) -> None:
+        """Write the provisional sidecar, padded to :data:`SIDECAR_RESERVE_BYTES`; on failure
+        (no room even for that) remove the new ``.dat`` and raise."""
+        side = _sidecar_dict(self.layout, 0, self.rate_hz, self.meta)
+        del side["n_frames"]  # unknown until the end: read from the file's size meanwhile
+        side["complete"] = False
+        try:
+            self._put_sidecar(_sidecar_bytes(side, SIDECAR_RESERVE_BYTES))
+        except BaseException:
+            self._fh.close()
+            with contextlib.suppress(OSError):
+                self._remove_files()
+            raise
+
+    def _write_final_sidecar(self) -> None:
+        side = _sidecar_dict(self.layout, self.n_frames, self.rate_hz, self.meta)
+        try:
+            self._put_sidecar(_sidecar_bytes(side))
+        except OSError as exc:
+            # the disk is full (or nearly): the reserved sidecar's space is still ours
+            data = _sidecar_bytes(side, SIDECAR_RESERVE_BYTES)
+            if len(data) > SIDECAR_RESERVE_BYTES:  # a long drop map: keep its total only
+                side["drop_map"] = f"{len(side.get('drop_map') or ())} entries, not kept"
+                data = _sidecar_bytes(side, SIDECAR_RESERVE_BYTES)
+            try:
+                self._put_sidecar_in_place(data)
+            except OSError:
+                raise exc from None
 
     @property
     def bytes_written(self) -> int:
@@ -605,8 +661,13 @@ class DatWriter:
         if self._fh.closed:
             return
         self._fh.close()
-        side = _sidecar_dict(self.layout, self.n_frames, self.rate_hz, self.meta)
-        write_json_atomic(sidecar_path(self.path), side)
+        self._write_final_sidecar()
+
+    def discard(self) -> None:
+        """Close and remove the ``.dat`` and its sidecar (a recording that holds nothing)."""
+        if not self._fh.closed:
+            self._fh.close()
+        self._remove_files()
 
     def __enter__(self) -> DatWriter:
         return self
@@ -618,14 +679,42 @@ class DatWriter:
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as JSON to ``path`` through a temporary file in the same folder and a
     rename: ``path`` is either its old content or the whole new one, never a partial file."""
-    path = Path(path)
+    _write_bytes_atomic(Path(path), json.dumps(obj, indent=2, default=_json_default).encode())
+
+
+def _write_bytes_atomic(path: Path, data: bytes) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(obj, indent=2, default=_json_default))
+        with open(tmp, "wb", buffering=0) as fh:
+            _overwrite(fh.fileno(), data)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _overwrite(fd: int, data: bytes) -> None:
+    """Write all of ``data`` at the start of ``fd`` and cut the file there (short writes are
+    retried; one that writes nothing is ENOSPC)."""
+    view = memoryview(data)
+    done = 0
+    while done < len(view):
+        n = os.pwrite(fd, view[done:], done)
+        if not n:
+            raise OSError(errno.ENOSPC, "No space left on device (short write)")
+        done += n
+    os.ftruncate(fd, len(data))
+
+
+#: bytes a sidecar holds on disk from the moment its ``.dat`` is created (a few hundred are
+#: used; the rest is blanks, which JSON ignores), so the final one fits on a full disk
+SIDECAR_RESERVE_BYTES = 16 * 1024
+
+
+def _sidecar_bytes(side: Mapping[str, Any], pad_to: int = 0) -> bytes:
+    """``side`` as indented JSON text, padded with blanks (then a newline) to ``pad_to``."""
+    text = json.dumps(side, indent=2, default=_json_default).encode()
+    return text + b" " * max(0, pad_to - len(text) - 1) + b"\n"
 
 
 def _json_default(o: Any) -> Any:

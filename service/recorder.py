@@ -8,7 +8,9 @@ A recording never fills the disk: it is capped at ``max_bytes`` (default: the fr
 :data:`RESERVE_BYTES`), refused before it starts when not even one block fits, and stopped
 cleanly when the free space falls under the reserve while it runs (other writers share the
 disk). Whatever stops it (``stop_reason``), the ``.dat`` holds whole frames only and its sidecar
-is written atomically, so the recording opens.
+exists from before the first frame (:class:`~cfsr.datfile.DatWriter` reserves its space), so
+the recording opens with its own geometry even when another writer fills the disk. A recording
+that got no frame is removed (``path`` null in its status).
 
 The ``.dat`` and its sidecar are created through :mod:`cfsr_live.service.safefs`
 (:class:`FolderDatWriter`):
@@ -19,6 +21,7 @@ is written.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import shutil
@@ -30,14 +33,14 @@ from typing import TYPE_CHECKING, Any
 
 from cfsr.datfile import (
     DatWriter,
-    _json_default,
+    _overwrite,
     _sidecar_dict,
     sidecar_path,
     validate_sidecar,
 )
 from cfsr.layout import Layout
 from cfsr_live.driver.source import BlockFlags
-from cfsr_live.service.safefs import create_exclusive, name_taken, write_json_at
+from cfsr_live.service.safefs import create_exclusive, name_taken, write_bytes_at
 from cfsr_live.shm.ring import SpikeRing
 
 if TYPE_CHECKING:
@@ -95,21 +98,45 @@ class FolderDatWriter(DatWriter):
             os.close(self._dir_fd)
             raise
         self._side = side
+        self._name = name
         self._fh = os.fdopen(fd, "wb", buffering=0)
+        try:
+            self._reserve_sidecar()  # before the first byte of spikes (removes the .dat if not)
+        except BaseException:
+            self._release_folder()
+            raise
 
-    def write_sidecar(self) -> None:
-        """Write the sidecar of what is on disk now (atomically; also done by :meth:`close`)."""
-        side = _sidecar_dict(self.layout, self.n_frames, self.rate_hz, self.meta)
-        write_json_at(self._dir_fd, self._side, side, default=_json_default)
+    def _put_sidecar(self, data: bytes) -> None:
+        write_bytes_at(self._dir_fd, self._side, data)
+
+    def _put_sidecar_in_place(self, data: bytes) -> None:
+        fd = os.open(self._side, os.O_WRONLY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=self._dir_fd)
+        try:
+            _overwrite(fd, data)
+        finally:
+            os.close(fd)
+
+    def _remove_files(self) -> None:
+        for name in (self._name, self._side):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(name, dir_fd=self._dir_fd)
 
     def close(self) -> None:
-        if self._fh.closed:
-            return
-        self._fh.close()
         try:
-            self.write_sidecar()
+            super().close()
         finally:
+            self._release_folder()
+
+    def discard(self) -> None:
+        try:
+            super().discard()
+        finally:
+            self._release_folder()
+
+    def _release_folder(self) -> None:
+        if self._dir_fd >= 0:
             os.close(self._dir_fd)
+            self._dir_fd = -1
 
 
 def size_cap(
@@ -185,6 +212,8 @@ class Recorder:
         self.started_at = datetime.now(UTC).isoformat(timespec="seconds")
         self.first_step: int | None = None
         self.error: str | None = None
+        #: True once a recording that got no frame has been removed (nothing to keep)
+        self.removed = False
         self._thread = threading.Thread(target=self._run, name="cfsr-recorder", daemon=True)
         self._thread.start()
 
@@ -256,9 +285,13 @@ class Recorder:
             }
         )
         try:
-            self._writer.close()
-        except OSError as exc:  # e.g. no room left even for the sidecar: the .dat still opens
-            self.error = (self.error + "; " if self.error else "") + f"sidecar not written: {exc}"
+            if self.frames:
+                self._writer.close()
+            else:  # nothing came: no empty .dat (which nothing opens) is left behind
+                self._writer.discard()
+                self.removed = True
+        except OSError as exc:  # the sidecar's reserved space could not be written either
+            self.error = (self.error + "; " if self.error else "") + f"sidecar not final: {exc}"
         self._reader.close()
         os.close(self._space_fd)
 
@@ -278,7 +311,9 @@ class Recorder:
         running = self.running  # read once: a stop reason shows only once it has stopped
         return RecordStatus(
             recording=running,
-            path=str(self.path),
+            # the folder of the recording and its name, never the server's absolute path
+            # (which the listing does not show either): "recordings/NAME.dat"
+            path=None if self.removed else f"{self.path.parent.name}/{self.path.name}",
             name=self.path.name,
             frames=self.frames,
             bytes=self.frames * self.layout.frame_bytes,

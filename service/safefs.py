@@ -30,6 +30,7 @@ __all__ = [
     "create_exclusive",
     "name_taken",
     "open_subfolder",
+    "write_bytes_at",
     "write_json_at",
 ]
 
@@ -109,8 +110,12 @@ def write_json_at(dir_fd: int, name: str, obj: Any, *, default=None) -> None:
     """Write ``obj`` as JSON to ``name`` in the folder atomically: a fresh temporary file
     (exclusive, unpredictable name) renamed over ``name``, which replaces a link rather than
     writing through it."""
+    write_bytes_at(dir_fd, name, json.dumps(obj, indent=2, default=default).encode())
+
+
+def write_bytes_at(dir_fd: int, name: str, text: bytes) -> None:
+    """Write ``text`` to ``name`` in the folder atomically (as :func:`write_json_at`)."""
     _check_name(name)
-    text = json.dumps(obj, indent=2, default=default).encode()
     tmp = f".{name}.{secrets.token_hex(6)}.tmp"
     fd = create_exclusive(dir_fd, tmp)
     try:

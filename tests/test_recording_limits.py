@@ -58,23 +58,44 @@ def test_full_disk_keeps_whole_frames_and_a_whole_sidecar(tmp_path):
         assert not [p for p in fs.iterdir() if p.name.endswith(".tmp")]
 
 
-def test_no_room_for_the_sidecar_leaves_no_partial_one(tmp_path):
+def test_a_full_disk_still_gets_the_final_sidecar(tmp_path):
+    """Another writer fills the disk during a recording: the sidecar's space was reserved when
+    the .dat was created, so the final sidecar is written in place and the recording opens
+    with its own geometry (a 256 x 128 recording used to be read as 400 x 250, or not at all)."""
+    lay = Layout(256, 128)
     with tiny_tmpfs(tmp_path / "fs", "200k") as fs:
         path = fs / "rec.dat"
-        w = DatWriter(path, LAY)
+        w = DatWriter(path, lay, meta={"gain": 0.25})
+        side = sidecar_path(path)
+        # before the first byte of spikes the sidecar is there, with the geometry
+        early = json.loads(side.read_text())
+        assert (early["width"], early["height"], early["complete"]) == (256, 128, False)
+        assert "n_frames" not in early
         with pytest.raises(OSError):
             for _ in range(100):
-                w.write_packed(np.zeros((3, LAY.frame_bytes), np.uint8))
+                w.write_packed(np.zeros((3, lay.frame_bytes), np.uint8))
         # the trimmed partial frame freed a little room: another writer takes it
         with open(fs / "other", "wb", buffering=0) as f, contextlib.suppress(OSError):
             while True:
                 f.write(b"\1" * 4096)
-        with pytest.raises(OSError):
-            w.close()  # the disk is full: the sidecar cannot be written
-        side = sidecar_path(path)
-        assert not side.exists()  # not a 0-byte sidecar that makes the recording unreadable
+        w.close()  # the disk is full: written into the reserved space
+        final = json.loads(side.read_text())
+        assert final["n_frames"] == w.n_frames > 0 and "complete" not in final
         assert not [p for p in fs.iterdir() if p.name.endswith(".tmp")]
-        assert cfsr.read_dat(path).n_frames == w.n_frames  # 400 x 250 default geometry
+        rec = cfsr.read_dat(path)
+        assert (rec.layout.width, rec.layout.height, rec.n_frames) == (256, 128, w.n_frames)
+        assert rec.gain == 0.25
+
+
+def test_a_full_disk_at_the_start_leaves_no_file(tmp_path):
+    """Not even the sidecar's reserve fits: the writer refuses, and leaves neither file."""
+    with tiny_tmpfs(tmp_path / "fs", "64k") as fs:
+        with open(fs / "other", "wb", buffering=0) as f, contextlib.suppress(OSError):
+            while True:
+                f.write(b"\1" * 4096)
+        with pytest.raises(OSError):
+            DatWriter(fs / "rec.dat", LAY)
+        assert sorted(p.name for p in fs.iterdir()) == ["other"]
 
 
 def test_cli_record_stops_at_the_size_cap(tmp_path):

@@ -24,6 +24,7 @@ def run(args: argparse.Namespace) -> int:
 
     from tqdm import tqdm
 
+    from cfsr.datfile import sidecar_path
     from cfsr.stats import recording_stats
 
     # info reports a partial tail as a problem rather than refusing the file
@@ -32,6 +33,9 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore")
         rec = open_input(args)
     lay = rec.layout
+    # what is on disk, not whether the reader filled in metadata (a partial tail adds some)
+    has_sidecar = rec.path is not None and sidecar_path(rec.path).is_file()
+    provisional = has_sidecar and rec.meta.get("complete") is False
     limit = None if args.all else 40_000
     total = rec.n_frames if limit is None else min(rec.n_frames, limit)
     with tqdm(
@@ -55,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         "rate_hz": rec.rate_hz,
         "duration_s": rec.duration_s,
         "gain": rec.gain,
-        "sidecar": bool(rec.meta),
+        "sidecar": has_sidecar,
+        "sidecar_final": has_sidecar and not provisional,
         **asdict(st),
     }
     if args.json:
@@ -70,7 +75,9 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"duration    {rec.n_frames} steps = {rec.duration_s * 1e3:.3f} ms at {rec.rate_hz:g} Hz")
     print(
-        f"sidecar     {'yes' if rec.meta else 'no'}"
+        f"sidecar     {'yes' if has_sidecar else 'no'}"
+        + (" (provisional: the recording did not end cleanly; frames counted from the size)"
+           if provisional else "")
         + (f", display gain {rec.gain:g} spikes/step" if rec.gain else "")
     )
     print(f"spike rate  mean {st.mean_rate:.4f} spikes/step/pixel over {st.n_scanned} steps")

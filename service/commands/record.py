@@ -91,7 +91,9 @@ def run(args: argparse.Namespace) -> int:
         meta = {"source": info.to_dict()}
         if info.meta.get("gain"):
             meta["gain"] = info.meta["gain"]
-        with _writer(out, info, meta, force=args.force) as wr:
+        wr = _writer(out, info, meta, force=args.force)
+        lost = 0
+        try:
             next_index = None
             while got < want:
                 try:
@@ -114,6 +116,13 @@ def run(args: argparse.Namespace) -> int:
             wr.meta.update(
                 {"drop_map": drop_map, "lost_frames": lost, "clean_capture": lost == 0}
             )
+        finally:
+            if wr.n_frames:
+                wr.close()
+            else:  # nothing came: no empty .dat (which nothing opens) is left behind
+                wr.discard()
+        if not got:
+            raise OSError(f"{info.name}: no frame came; nothing written to {out}")
     dt = time.monotonic() - t0
     print(
         f"cfsr record: {got} frames ({got / info.rate_hz:.3f} s of sensor time) from "
