@@ -11,7 +11,7 @@ Three frozen dataclasses, each validated when it is made and then passed on as i
   the current source), sent over the process queue and answered by ``version``.
 
 Why dataclasses and not the HTTP models: the same values come from the command line
-(``cfsr serve --method --param --max-fps``) and from HTTP, and the worker must not depend on
+(``cfsr serve --method --max-fps``) and from HTTP, and the worker must not depend on
 the web stack's model classes; the HTTP models (:mod:`cfsr_live.service.models`) take their bounds
 from the same constants, for the OpenAPI document.
 """
@@ -151,7 +151,8 @@ class LiveConfig:
         max_fps: float = 30.0,
     ) -> LiveConfig:
         """A configuration from a method name and parameters that may hold ``quality =
-        auto`` (the command line's ``--method``/``--param``)."""
+        auto`` (the service's start: the command line's ``--method`` and the settings'
+        parameters)."""
         from cfsr.config import MethodConfig
 
         rest, q = split_quality(params)
