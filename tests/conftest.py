@@ -4,6 +4,10 @@
   use it skip with a reason when it is absent -- the product never needs it.
 * ``require_tier(name, ok, why)``: system-dependent tiers (umockdev USB, Chromium) skip on a
   developer machine that lacks them, but FAIL under ``CI=true``, where they must run.
+* The quick tier (``./tasks test --quick`` = ``pytest -m "not slow"``): every module's unit
+  tests and small integration tests. ``slow`` is applied here, by what a test uses (a real
+  server, a worker pipeline, the wheel, a system tier, a whole module of long runs), never by
+  hand per test, so a new test that starts a server leaves the quick tier by itself.
 """
 
 from __future__ import annotations
@@ -19,6 +23,51 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 # every server the suite starts would otherwise compile all kernels in the background on its
 # first start (cfsr_live.service.kernels); tests/test_kernel_warmup.py turns it on where it tests it
 os.environ.setdefault("CFSR_WARMUP", "0")
+
+
+#: fixtures that start something a quick run cannot afford: a real ``cfsr serve`` (module
+#: servers), a worker pipeline of processes, the built wheel and its venvs, the shared data
+SLOW_FIXTURES = frozenset({
+    "server", "back_on_a_dat", "pipeline", "pool_pipeline", "shared_pipeline",
+    "wheel_file", "base_install", "live_install", "shared_data", "reds_files",
+})
+#: names whose use in a test's body means it starts a real server or a worker process
+SLOW_NAMES = frozenset({"LiveServer", "WorkerSupervisor", "_pipeline"})
+#: modules that are long runs as a whole: accuracy tables, the benchmark, the hour-long
+#: stream, the fault matrices (a server per row group), kernel compiles into fresh caches
+SLOW_MODULES = frozenset({
+    "test_accuracy_sim", "test_accuracy_data", "test_bench", "test_stress_long",
+    "test_fault_matrix", "test_fault_matrix_hostile", "test_kernel_warmup",
+})
+#: system tiers are never quick (they are the slowest starts of all)
+SYSTEM_MARKERS = ("usb", "browser", "packaging", "fuzz")
+
+
+def _code_names(code) -> set[str]:
+    """Global names a function's code (and the code nested in it) refers to."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if hasattr(const, "co_names"):
+            names |= _code_names(const)
+    return names
+
+
+def _is_slow(item: pytest.Item) -> bool:
+    if item.get_closest_marker("slow") or any(item.get_closest_marker(m)
+                                               for m in SYSTEM_MARKERS):
+        return True
+    if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
+        return True
+    if item.module is not None and item.module.__name__.rpartition(".")[2] in SLOW_MODULES:
+        return True
+    fn = getattr(item, "function", None)
+    return fn is not None and bool(SLOW_NAMES & _code_names(fn.__code__))
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if _is_slow(item) and not item.get_closest_marker("slow"):
+            item.add_marker(pytest.mark.slow)
 
 
 def require_tier(name: str, ok: bool, why: str) -> None:
