@@ -25,7 +25,7 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from cfsr.cli import version
-from cfsr_live.service.body import MAX_QUOTE, StrictJsonBody, short
+from cfsr_live.service.body import MAX_QUOTE, Refusal, StrictJsonBody, short
 from cfsr_live.service.hub import FrameHub
 from cfsr_live.service.runtime import Runtime
 from cfsr_live.service.security import AttemptThrottle, SessionStore
@@ -44,6 +44,29 @@ def viewer_dir(settings: Settings | None = None) -> Path:
     from importlib.resources import files
 
     return Path(str(files("cfsr_live.viewer")))
+
+
+#: routes with a body that need no token: the login that trades the token for a cookie
+_OPEN_WITH_BODY = frozenset({"/api/session"})
+
+
+def _token_before_body(scope: dict) -> Refusal | None:
+    """401 (or 429 for a client over the wrong-token throttle) for a request with a body to a
+    route that needs the token, when it has none: answered before the body is read. The route's
+    own dependency checks again (the same function), so the answer is the same either way."""
+    from starlette.requests import HTTPConnection
+
+    from cfsr_live.service.deps import TooManyTries, token_ok
+
+    if scope.get("path") in _OPEN_WITH_BODY:
+        return None
+    try:
+        if token_ok(HTTPConnection(scope)):
+            return None
+    except TooManyTries as exc:
+        return 429, exc.detail, [(k.lower().encode(), v.encode())
+                                 for k, v in (exc.headers or {}).items()]
+    return 401, "missing or wrong access token", [(b"www-authenticate", b"Bearer")]
 
 
 def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
@@ -128,8 +151,9 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         app.include_router(r.router)
     if settings.test_hooks:
         app.include_router(debug.router)
-    # every request body, strict JSON of bounded size, before any route (cfsr_live.service.body)
-    app.add_middleware(StrictJsonBody)
+    # every request body, strict JSON of bounded size and time, before any route
+    # (cfsr_live.service.body); the token is checked before a byte of it is read
+    app.add_middleware(StrictJsonBody, admit=_token_before_body)
     # outermost: a request from a foreign page or a rebinding name goes no further
     app.add_middleware(
         HostOriginGuard,

@@ -1,26 +1,54 @@
 """The HTTP/1.1 protocol the server runs: uvicorn's h11 protocol with a deadline on the request
-head.
+head and a cap on open connections; and a rate limit on the server's repeated log lines.
 
 uvicorn times out an idle keep-alive connection, but not one that has sent part of a request
 head (``GET / HTTP/1.1\\r\\nX-Slow: ``) and then nothing: each such connection holds a socket
 and a parser for ever, and a few thousand of them exhaust the server's descriptors (the classic
 "slowloris"). Here a connection whose request line and headers are not complete within
 ``header_timeout`` seconds of its first byte (or of its opening) is closed. A body or a
-WebSocket, once the head is in, is not limited by it.
+WebSocket, once the head is in, is not limited by it (the body has its own deadline,
+:mod:`cfsr_live.service.body`).
+
+A connection opened while :attr:`HeadTimeoutH11Protocol.max_connections` are open is closed at
+once, before anything is read: the server then never runs out of descriptors (where asyncio
+logs an ``accept()`` error many times a second and answers nobody, ``/healthz`` included).
+``cfsr serve`` sets the cap below its open-file limit (:func:`connection_cap`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
+import os
+import threading
+import time
 from typing import Any
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-__all__ = ["HEADER_TIMEOUT_S", "HeadTimeoutH11Protocol"]
+__all__ = [
+    "ACCEPT_BATCH",
+    "DEFAULT_MAX_CONNECTIONS",
+    "HEADER_TIMEOUT_S",
+    "HeadTimeoutH11Protocol",
+    "RepeatedLogFilter",
+    "connection_cap",
+    "install_log_rate_limit",
+    "raise_open_file_limit",
+]
 
 #: seconds a client has to send a whole request head (a browser sends it in one packet)
 HEADER_TIMEOUT_S = 10.0
+#: open connections (HTTP and WebSocket) at most, by default; fewer where the open-file limit
+#: is lower (:func:`connection_cap`)
+DEFAULT_MAX_CONNECTIONS = 1000
+#: connections accepted in one go (uvicorn's ``backlog``: asyncio accepts up to this many per
+#: wake-up, before any of them is counted against the cap)
+ACCEPT_BATCH = 64
+#: descriptors kept free beyond those open at start and the cap: two accept batches in
+#: flight before the cap closes them, plus the server's own (recordings, listings, pipes)
+_FD_RESERVE = 2 * ACCEPT_BATCH + 32
 
 
 class HeadTimeoutH11Protocol(H11Protocol):
@@ -28,6 +56,8 @@ class HeadTimeoutH11Protocol(H11Protocol):
     within :attr:`header_timeout` seconds."""
 
     header_timeout: float = HEADER_TIMEOUT_S
+    #: open connections at most; one more is closed as soon as it is accepted
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
@@ -51,6 +81,11 @@ class HeadTimeoutH11Protocol(H11Protocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        if len(self.connections) > self.max_connections:
+            self.logger.warning("closing a new connection: %d are open, the most the server "
+                                "keeps (--max-connections)", self.max_connections)
+            transport.abort()  # frees the descriptor now; connection_lost forgets it
+            return
         self._arm_head_timer()
 
     def data_received(self, data: bytes) -> None:
@@ -68,3 +103,83 @@ class HeadTimeoutH11Protocol(H11Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_head_timer()
         super().connection_lost(exc)
+
+
+def raise_open_file_limit(want: int = 65536) -> int:
+    """Raise this process's soft open-file limit towards its hard limit (at most ``want``);
+    the soft limit now in force. A server's connections are descriptors: a soft limit of 1,024
+    (a common default) is reached by a thousand idle sockets."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = want if hard == resource.RLIM_INFINITY else min(want, hard)
+    if soft != resource.RLIM_INFINITY and soft < target:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+            soft = target
+        except (ValueError, OSError):
+            pass
+    return soft
+
+
+def connection_cap(requested: int, soft_limit: int) -> int:
+    """The connection cap in force: ``requested``, lowered to leave :data:`_FD_RESERVE`
+    descriptors free beyond those open now under ``soft_limit`` (at least 16)."""
+    try:
+        open_now = len(os.listdir("/proc/self/fd"))
+    except OSError:
+        open_now = 64
+    return max(16, min(requested, soft_limit - open_now - _FD_RESERVE))
+
+
+class RepeatedLogFilter(logging.Filter):
+    """Lets a log line through once per ``window_s`` seconds per (logger, message template);
+    the next one let through says how many were held back. A client that makes the server fail
+    the same way thousands of times a second (EMFILE on ``accept()``, a bad WebSocket frame)
+    must not fill the disk with the same traceback."""
+
+    def __init__(self, window_s: float = 10.0) -> None:
+        super().__init__()
+        self.window_s = window_s
+        self._seen: dict[tuple[str, str], tuple[float, int]] = {}
+        self._lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and str(record.msg).startswith(_CLIENT_FAULTS):
+            # a client's fault, handled (the connection is closed with 1007): one INFO line,
+            # not an ERROR with a traceback
+            record.exc_info = record.exc_text = None
+            record.levelno, record.levelname = logging.INFO, "INFO"
+            record.msg = f"{record.msg} (closed with 1007)"
+            if not logging.getLogger(record.name).isEnabledFor(logging.INFO):
+                return False
+        key = (record.name, str(record.msg)[:200])
+        now = time.monotonic()
+        with self._lock:
+            last, held = self._seen.get(key, (-1e18, 0))
+            if now - last < self.window_s:
+                self._seen[key] = (last, held + 1)
+                return False
+            if len(self._seen) > 1024:  # bounded: forget the oldest half
+                for k in sorted(self._seen, key=lambda k: self._seen[k][0])[:512]:
+                    del self._seen[k]
+            self._seen[key] = (now, 0)
+        if held:
+            record.msg = f"{record.msg} [{held} more like this in the last {now - last:.0f} s]"
+        return True
+
+
+#: log messages (uvicorn's) that report a client's fault with an ERROR traceback
+_CLIENT_FAULTS = ("Invalid UTF-8 sequence received from client",)
+
+#: loggers whose lines a client can make repeat: asyncio's accept loop, uvicorn's protocols
+_RATE_LIMITED = ("asyncio", "uvicorn.error", "websockets", "websockets.server",
+                 "websockets.protocol", "cfsr.app")
+
+
+def install_log_rate_limit(window_s: float = 10.0) -> RepeatedLogFilter:
+    """Attach one :class:`RepeatedLogFilter` to each logger a client can make repeat."""
+    flt = RepeatedLogFilter(window_s)
+    for name in _RATE_LIMITED:
+        logging.getLogger(name).addFilter(flt)
+    return flt

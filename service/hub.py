@@ -22,9 +22,23 @@ from cfsr_live.service import schema
 from cfsr_live.service.frameslot import FrameSlot, SlotFrame
 from cfsr_live.service.status import ClientDrops, HubStatus
 
-__all__ = ["FrameHub", "ClientQueue", "encode_ws_message", "decode_ws_message"]
+__all__ = [
+    "FrameHub",
+    "ClientQueue",
+    "MAX_CLIENT_MESSAGE_BYTES",
+    "MAX_CLIENT_MESSAGES_QUEUED",
+    "encode_ws_message",
+    "decode_ws_message",
+]
 
 log = logging.getLogger("cfsr.hub")
+
+#: the largest WebSocket message a client may send, bytes, fragments together: a client only
+#: ever sends ``{"max_fps": N}`` (a few dozen bytes). A larger one closes the connection (1009)
+#: as it arrives, so 60 clients sending 15 MB fragments hold kilobytes, not a gigabyte.
+MAX_CLIENT_MESSAGE_BYTES = 1024
+#: client messages the server buffers per connection before it stops reading the socket
+MAX_CLIENT_MESSAGES_QUEUED = 4
 
 def encode_ws_message(f: SlotFrame, mask_names: tuple[str, ...]) -> bytes:
     """The frame as the binary WebSocket message (:func:`cfsr_live.service.schema.

@@ -27,6 +27,7 @@ from cfsr_live.service.status import (
 
 __all__ = [
     "ClientDrops",
+    "ClientMessage",
     "ConfigModel",
     "ConfigUpdate",
     "DisplayConfig",
@@ -53,7 +54,9 @@ __all__ = [
 #: Request bodies are read in pydantic's strict mode: ``true`` is no number, ``1`` no boolean,
 #: ``"32"`` no integer (a client that sends them has a bug the service should name, not guess
 #: around). Bodies are strict JSON before they get here (:mod:`cfsr_live.service.body`).
-STRICT = ConfigDict(strict=True)
+#: Unknown fields are refused (422 naming them): ``{"max_fsp": 10}`` or ``{"display":
+#: {"gainmode": "auto"}}`` was accepted and silently changed nothing (or reset a default).
+STRICT = ConfigDict(strict=True, extra="forbid")
 
 
 def _nan_as_text(v: Any) -> Any:
@@ -74,6 +77,16 @@ FiniteFloat = Annotated[float, Field(allow_inf_nan=False), BeforeValidator(_nan_
 class Health(BaseModel):
     status: Literal["ok"] = "ok"
     uptime_s: float
+
+
+class ClientMessage(BaseModel):
+    """What a WebSocket client may send (JSON text): its own frame-rate cap."""
+
+    model_config = STRICT
+
+    max_fps: FiniteFloat | None = Field(
+        None, description="most frames/s this client wants (clamped to the limits; 0 or null: "
+        "no cap of its own)")
 
 
 class DisplayConfig(BaseModel):

@@ -15,6 +15,10 @@ from cfsr.datfile import MIN_GAIN
 MAX_FPS_RANGE = (0.1, 240.0)
 #: seconds of sensor data the shared ring may hold (1 s of a 400 x 250 camera is 500 MB)
 RING_SECONDS_RANGE = (0.01, 10.0)
+#: the shared ring's size cap in MiB (``cfsr serve --ring-max-mb``): the ring holds
+#: ``ring_seconds`` of the source or what fits under the cap, whichever is less. The smallest
+#: cap still holds 8 blocks of the largest displayable frame (8 x 256 x 128 KiB)
+RING_MAX_MB_RANGE = (256, 65536)
 #: a recording's file name (without folder; ``.dat`` is added): a letter or digit first, then
 #: letters, digits, ``.``, ``_``, ``-``; at most 64 characters, so never a path or a hidden file
 RECORDING_NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
@@ -34,6 +38,7 @@ __all__ = [
     "MIN_DISPLAY_GAIN",
     "RECORDING_NAME_PATTERN",
     "RECORDING_NAME_RE",
+    "RING_MAX_MB_RANGE",
     "RING_SECONDS_RANGE",
     "Settings",
     "SourceSpec",
@@ -111,6 +116,8 @@ class Settings:
     replay_mode: str = "paced"  # "fast": deterministic, as fast as the worker consumes
     block_frames: int = 256
     ring_seconds: float = 0.25
+    #: the ring's size cap, bytes (default :data:`cfsr_live.shm.ring.DEFAULT_MAX_BYTES`, 1 GiB)
+    ring_max_bytes: int = 1 << 30
     method: str = "tfp"
     params: dict = field(default_factory=dict)
     max_fps: float = 30.0
@@ -125,6 +132,13 @@ class Settings:
     allowed_hosts: list[str] = field(default_factory=list)
     #: extra browser origins (besides the service's own) allowed to open /ws or change state
     allowed_origins: list[str] = field(default_factory=list)
+    #: addresses of reverse proxies whose X-Forwarded-For / X-Forwarded-Proto are believed
+    #: (``cfsr serve --trusted-proxy``); none by default: the peer address is the client, so a
+    #: header cannot pick its throttle slot or the address shown in the status
+    trusted_proxies: list[str] = field(default_factory=list)
+    #: open connections at most (``cfsr serve --max-connections``), lowered below the open-file
+    #: limit at start (:func:`cfsr_live.service.httpproto.connection_cap`)
+    max_connections: int = 1000
     demo_steps: int = int(os.environ.get("CFSR_DEMO_STEPS", "6000"))
     #: compile every method's kernels in a background process when they are not cached yet
     #: (``cfsr serve`` turns it on unless ``--no-warmup``; service.kernels)

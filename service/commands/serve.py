@@ -46,14 +46,31 @@ def _bounded(lo: float, hi: float, what: str):
     return parse
 
 
+def _int_in(lo: int, hi: int, what: str):
+    """An argparse type for an integer in [lo, hi] (digits only, at most 12 of them)."""
+
+    def parse(text: str) -> int:
+        t = text.strip()
+        if not (t.isdigit() and len(t) <= 12):
+            raise argparse.ArgumentTypeError(f"{text[:40]!r} is not a whole number of {what}")
+        v = int(t)
+        if not lo <= v <= hi:
+            raise argparse.ArgumentTypeError(f"{v} is outside {lo}..{hi} {what}")
+        return v
+
+    return parse
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from cfsr.cli._common import add_pool_arguments
     from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
     from cfsr_live.service import sources
-    from cfsr_live.service.settings import MAX_FPS_RANGE, RING_SECONDS_RANGE
+    from cfsr_live.service.httpproto import DEFAULT_MAX_CONNECTIONS
+    from cfsr_live.service.settings import MAX_FPS_RANGE, RING_MAX_MB_RANGE, RING_SECONDS_RANGE
 
     fps_lo, fps_hi = MAX_FPS_RANGE
     ring_lo, ring_hi = RING_SECONDS_RANGE
+    cap_lo, cap_hi = RING_MAX_MB_RANGE
 
     # each kind of source adds its own flags (cfsr_live.service.sources); none: the demo
     src = p.add_mutually_exclusive_group()
@@ -90,7 +107,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--ring-seconds", type=_bounded(*RING_SECONDS_RANGE, "s"), default=0.25,
                    help=f"seconds of sensor data the shared ring holds, {ring_lo:g}..{ring_hi:g} "
-                   "(default 0.25; 1 s of a 400 x 250 camera is 500 MB of shared memory)")
+                   "(default 0.25; 1 s of a 400 x 250 camera is 500 MB of shared memory), "
+                   "or less where that is over --ring-max-mb")
+    p.add_argument("--ring-max-mb", type=_int_in(cap_lo, cap_hi, "MiB"), default=1024,
+                   help=f"the shared ring's size cap, {cap_lo}..{cap_hi} MiB (default 1024): "
+                   "a source whose rate and geometry ask for more (a recording's sidecar "
+                   "sets both) gets a shorter ring; one whose 8 blocks do not fit is refused")
+    p.add_argument("--max-connections", type=_int_in(16, 100_000, "connections"),
+                   default=DEFAULT_MAX_CONNECTIONS,
+                   help=f"open HTTP and WebSocket connections at most, 16..100000 (default "
+                   f"{DEFAULT_MAX_CONNECTIONS}; lowered to stay under the open-file limit); one "
+                   "more is closed at once")
+    p.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDR",
+                   help="believe X-Forwarded-For/-Proto from this reverse proxy's address "
+                   "(repeatable; default none: the peer address is the client's, whatever "
+                   "headers say)")
     p.add_argument("--replay-mode", choices=("paced", "fast"), default="paced",
                    help="paced: real-time schedule (default); fast: deterministic, as fast as "
                    "the worker consumes (tests)")
@@ -121,6 +152,9 @@ def build_settings(args: argparse.Namespace):
         method=args.method,
         max_fps=args.max_fps,
         ring_seconds=args.ring_seconds,
+        ring_max_bytes=args.ring_max_mb << 20,
+        max_connections=args.max_connections,
+        trusted_proxies=list(args.trusted_proxy),
         **({} if args.workers is None else {"workers": args.workers}),
         threads=args.threads,
         test_hooks=args.test_hooks,
@@ -208,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
     _check_port(settings.host, settings.port)
     _check_data_dir(settings.data_dir)
     say = lambda m: print(f"cfsr serve: {m}", flush=True)  # noqa: E731
+    from cfsr_live.service.httpproto import install_log_rate_limit
     from cfsr_live.service.safefs import FolderLock
     from cfsr_live.service.security import install_log_redaction
     from cfsr_live.service.signals import (
@@ -219,6 +254,7 @@ def run(args: argparse.Namespace) -> int:
 
     # no log record of this process, at any level, carries the token or a session cookie
     install_log_redaction([settings.token] if settings.token else [])
+    install_log_rate_limit()  # a client cannot make the server log the same line 2,000 times/s
     start_resource_tracker()  # before any queue: it must outlive a closed terminal
     raise_on_ending_signals()  # a signal during the start unwinds it cleanly
     lock = FolderLock(settings.data_dir)
@@ -283,6 +319,8 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
     """The uvicorn server of ``rt``'s app (every ending signal trapped, request heads timed)."""
     import uvicorn
 
+    from cfsr_live.service.httpproto import ACCEPT_BATCH, connection_cap, raise_open_file_limit
+    from cfsr_live.service.hub import MAX_CLIENT_MESSAGE_BYTES, MAX_CLIENT_MESSAGES_QUEUED
     from cfsr_live.service.signals import trap_ending_signals
 
     if rt.kernels.status().state == "compiling":
@@ -304,6 +342,12 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
                 say(f"viewer at {url}  (source: {settings.source.id}"
                     f"{_token_note(settings.token)}; Ctrl+C to stop)")
 
+    cap = connection_cap(settings.max_connections, raise_open_file_limit())
+    if cap < settings.max_connections:
+        say(f"at most {cap} open connections (the open-file limit, 'ulimit -n', is lower "
+            f"than --max-connections {settings.max_connections} needs)")
+    http = type("CappedH11Protocol", (http,), {"max_connections": cap})
+    trusted = settings.trusted_proxies
     config = uvicorn.Config(
         app,
         host=host,
@@ -313,8 +357,16 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
         ws_per_message_deflate=False,
         ws_ping_interval=20,
         ws_ping_timeout=20,
+        # a client sends only {"max_fps": N}: anything larger is refused as it arrives
+        ws_max_size=MAX_CLIENT_MESSAGE_BYTES,
+        ws_max_queue=MAX_CLIENT_MESSAGES_QUEUED,
         timeout_graceful_shutdown=3,
+        # uvicorn believes X-Forwarded-For from loopback by default: then any local process
+        # picks its own address (throttle slot, status); only a proxy the user names is believed
+        proxy_headers=bool(trusted),
+        forwarded_allow_ips=list(trusted) if trusted else [],
         workers=1,
-        http=http,  # a request head must come within 10 s
+        backlog=ACCEPT_BATCH,  # accepted per wake-up: at most that many over the cap at once
+        http=http,  # a request head must come within 10 s; at most `cap` connections
     )
     return _Server(config)

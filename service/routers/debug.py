@@ -8,11 +8,14 @@ from fastapi import APIRouter, Depends, HTTPException
 from pydantic import BaseModel
 
 from cfsr_live.service.deps import RuntimeDep, require_token
+from cfsr_live.service.models import STRICT
 
 router = APIRouter(tags=["debug"], dependencies=[Depends(require_token)])
 
 
 class Inject(BaseModel):
+    model_config = STRICT
+
     fault: Literal["crash", "raise"]
 
 

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import math
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, WebSocket
 from fastapi.responses import Response, StreamingResponse
+from pydantic import ValidationError
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
+from cfsr_live.service.body import short
 from cfsr_live.service.deps import HubDep, require_token, ws_token_ok
 from cfsr_live.service.hub import ClientQueue, FrameHub
-from cfsr_live.service.models import SchemaModel
+from cfsr_live.service.models import ClientMessage, SchemaModel
 from cfsr_live.service.render import encode_jpeg, encode_png, render_rgb
 from cfsr_live.service.settings import MAX_FPS_RANGE
 
@@ -129,6 +130,26 @@ def _client_fps(value) -> float | None:
     return min(max(v, lo), hi)
 
 
+def _client_message(msg: dict, client: ClientQueue) -> str | None:
+    """Apply a client's message (:class:`~cfsr_live.service.models.ClientMessage`); why it is
+    refused (unknown fields named), or None. Binary messages are refused: a client sends text."""
+    text = msg.get("text")
+    if text is None:
+        return "send JSON text, not binary" if msg.get("bytes") else None
+    try:
+        req = ClientMessage.model_validate_json(text)
+    except ValidationError as exc:
+        faults = []
+        for e in exc.errors()[:3]:
+            where = ".".join(str(x) for x in e.get("loc", ())) or "message"
+            why = "unknown field" if e["type"] == "extra_forbidden" else short(e["msg"], 40)
+            faults.append(f"{short(where, 24)}: {why}")
+        return "; ".join(faults)
+    if "max_fps" in req.model_fields_set:
+        client.max_fps = _client_fps(req.max_fps)
+    return None
+
+
 @router.websocket("/ws")
 async def ws(websocket: WebSocket) -> None:
     """Binary frame messages (see ``cfsr_live.service.hub``), one per new frame, latest-only per
@@ -166,14 +187,12 @@ async def ws(websocket: WebSocket) -> None:
             msg = recv.result()
             if msg["type"] == "websocket.disconnect":
                 break
-            text = msg.get("text")
-            if text:
-                try:
-                    req = json.loads(text)
-                    if isinstance(req, dict) and "max_fps" in req:
-                        client.max_fps = _client_fps(req["max_fps"])
-                except (ValueError, TypeError, RecursionError):
-                    pass
+            refused = _client_message(msg, client)
+            if refused is not None:
+                # the WebSocket's 422: an application close code (4000 + the HTTP status)
+                # and a reason naming the fault (a close reason holds at most 123 bytes)
+                await websocket.close(code=4422, reason=refused[:120])
+                break
     except WebSocketDisconnect:
         pass
     finally:

@@ -7,12 +7,15 @@ from fastapi import APIRouter, HTTPException, Request, Response, status
 from pydantic import BaseModel, Field
 
 from cfsr_live.service.deps import TooManyTries, client_key, token_matches, token_ok
+from cfsr_live.service.models import STRICT
 from cfsr_live.service.security import SESSION_COOKIE, SESSION_SECONDS
 
 router = APIRouter(tags=["session"])
 
 
 class SessionRequest(BaseModel):
+    model_config = STRICT
+
     token: str = Field(min_length=1, max_length=4096, description="the service's access token")
 
 
