@@ -20,6 +20,8 @@ __all__ = [
     "get_hub",
     "get_runtime",
     "get_settings",
+    "hide_paths",
+    "server_folders",
     "TooManyTries",
     "client_key",
     "require_token",
@@ -38,6 +40,24 @@ def get_hub(request: Request) -> FrameHub:
 
 def get_settings(request: Request) -> Settings:
     return request.app.state.settings
+
+
+def server_folders(settings: Settings) -> list[str]:
+    """Absolute folders whose names an answer never shows (longest first): the data folder
+    (as given and resolved) and the folder of a recording named on the command line."""
+    dirs = {settings.data_dir, settings.data_dir.resolve()}
+    if settings.source.path is not None:
+        dirs |= {settings.source.path.parent, settings.source.path.parent.resolve()}
+    return sorted((str(d).rstrip("/") + "/" for d in dirs), key=len, reverse=True)
+
+
+def hide_paths(settings: Settings, text: str | None) -> str | None:
+    """``text`` with the server's folders (:func:`server_folders`) cut from the file names in
+    it: ``/home/u/.local/share/cfsr/b.dat`` reads ``b.dat``, as in the listing."""
+    if text:
+        for d in server_folders(settings):
+            text = text.replace(d, "")
+    return text
 
 
 def _supplied(headers) -> str | None:

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 
 from fastapi import APIRouter, Request, Response
 
-from cfsr_live.service.deps import RuntimeDep
+from cfsr_live.driver.source import SourceState
+from cfsr_live.service.deps import RuntimeDep, hide_paths
 from cfsr_live.service.models import Health
 
 router = APIRouter(tags=["health"])
@@ -60,7 +61,8 @@ def _no_frame_for(request: Request, rt, frames_out: float) -> float:
     return t - w.since
 
 
-@router.get("/readyz", summary="503 unless the source streams, the worker is alive, beat "
+@router.get("/readyz", summary="503 unless the source streams (and is not in error), the "
+            "worker is alive, beat "
             f"within {READY_HEARTBEAT_S:g} s and publishes frames of what streams in")
 async def readyz(request: Request, response: Response, rt: RuntimeDep) -> dict:
     w = rt.worker
@@ -71,13 +73,18 @@ async def readyz(request: Request, response: Response, rt: RuntimeDep) -> dict:
     stalled = _no_frame_for(request, rt, float(frames_out)) if streaming else 0.0
     max_fps = getattr(getattr(rt, "config", None), "max_fps", None) or 1.0
     frame_limit = max(READY_FRAME_S, 3.0 / max_fps)
-    ok = bool(w and w.alive and w.ready.is_set() and fresh and streaming
+    src = rt.source
+    failed = src is not None and src.state == SourceState.ERROR
+    ok = bool(w and w.alive and w.ready.is_set() and fresh and streaming and not failed
               and stalled <= frame_limit)
     out = {"ready": ok, "heartbeat_age_s": age if math.isfinite(age) else None,
            "no_frame_s": round(stalled, 3)}
     if not ok:
         response.status_code = 503
-        if streaming and stalled > frame_limit:
+        if failed:  # the acquisition thread may still run: the source itself says it failed
+            why = hide_paths(request.app.state.settings, src.last_error) or "failed"
+            out["reason"] = f"the source is in error: {why}"
+        elif streaming and stalled > frame_limit:
             out["reason"] = (f"the source streams but no frame was published for "
                              f"{stalled:.1f} s")
     return out

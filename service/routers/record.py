@@ -6,7 +6,7 @@ import asyncio
 
 from fastapi import APIRouter, Depends, HTTPException
 
-from cfsr_live.service.deps import RuntimeDep, require_token
+from cfsr_live.service.deps import RuntimeDep, hide_paths, require_token
 from cfsr_live.service.models import RecordRequest, RecordStatus
 from cfsr_live.service.runtime import ConflictError
 
@@ -15,7 +15,12 @@ router = APIRouter(tags=["record"], dependencies=[Depends(require_token)])
 
 @router.get("/api/record", response_model=RecordStatus, summary="recording state")
 async def record_status(rt: RuntimeDep) -> RecordStatus:
-    return rt.record_status()
+    return _public(rt, rt.record_status())
+
+
+def _public(rt, st: RecordStatus) -> RecordStatus:
+    """The status with no absolute server path in its error text (the path is relative)."""
+    return st.model_copy(update={"error": hide_paths(rt.settings, st.error)})
 
 
 @router.post("/api/record", response_model=RecordStatus,
@@ -25,13 +30,15 @@ async def record_status(rt: RuntimeDep) -> RecordStatus:
 async def record(body: RecordRequest, rt: RuntimeDep) -> RecordStatus:
     try:
         if body.action == "start":
-            return await asyncio.to_thread(
+            st = await asyncio.to_thread(
                 rt.start_recording, body.name, body.max_frames, body.max_bytes
             )
-        return await asyncio.to_thread(rt.stop_recording)
+        else:
+            st = await asyncio.to_thread(rt.stop_recording)
     except ConflictError as exc:
-        raise HTTPException(409, str(exc)) from exc
+        raise HTTPException(409, hide_paths(rt.settings, str(exc))) from exc
     except ValueError as exc:
-        raise HTTPException(422, str(exc)) from exc
+        raise HTTPException(422, hide_paths(rt.settings, str(exc))) from exc
     except OSError as exc:  # no room on the disk: the request cannot be served now
-        raise HTTPException(507, str(exc)) from exc
+        raise HTTPException(507, hide_paths(rt.settings, str(exc))) from exc
+    return _public(rt, st)

@@ -7,8 +7,8 @@ import asyncio
 
 from fastapi import APIRouter, Depends, HTTPException
 
-from cfsr_live.driver.source import SourceError
-from cfsr_live.service.deps import RuntimeDep, require_token
+from cfsr_live.driver.source import SourceError, SourceState
+from cfsr_live.service.deps import RuntimeDep, hide_paths, require_token
 from cfsr_live.service.models import (
     ReplayState,
     ReplayUpdate,
@@ -39,7 +39,8 @@ async def put_source(body: SourceSelect, rt: RuntimeDep) -> SourceStatus:
     except KeyError:
         raise HTTPException(404, f"no source with id {body.id!r}; see GET /api/sources") from None
     except (ValueError, OSError, SourceError) as exc:
-        raise HTTPException(422, f"cannot open {body.id!r}: {exc}") from exc
+        raise HTTPException(
+            422, f"cannot open {body.id!r}: {hide_paths(rt.settings, str(exc))}") from exc
     # the state and capabilities as the switch left them (the source may move on at once)
     st = rt.source_report().status
     return st.model_copy(update={k: d[k] for k in ("state", "capabilities") if k in d})
@@ -52,6 +53,19 @@ def _replay(rt: Runtime):
         raise HTTPException(409, str(exc)) from exc
 
 
+def _replay_to_act(rt: Runtime):
+    """The replay controls, for an action: 409 while the source is in error (a file that
+    shrank under it stays failed until reopened; a play or seek would answer 200 and do
+    nothing)."""
+    ctl = _replay(rt)
+    src = rt.source
+    if src is not None and src.state == SourceState.ERROR:
+        why = hide_paths(rt.settings, src.last_error) or "failed"
+        raise HTTPException(409, f"the source is in error ({why}); select it again "
+                            "(PUT /api/source) to reopen it")
+    return ctl
+
+
 @router.get("/api/replay", response_model=ReplayState, summary="replay transport state",
             responses={409: {"description": "the current source is not a replay"}})
 async def get_replay(rt: RuntimeDep) -> dict:
@@ -59,9 +73,10 @@ async def get_replay(rt: RuntimeDep) -> dict:
 
 
 @router.put("/api/replay", response_model=ReplayState, summary="play/pause, speed, loop",
-            responses={409: {"description": "the current source is not a replay"}})
+            responses={409: {"description": "the current source is not a replay, or is in "
+                                        "error"}})
 async def put_replay(body: ReplayUpdate, rt: RuntimeDep) -> dict:
-    ctl = _replay(rt)
+    ctl = _replay_to_act(rt)
     try:
         if body.speed is not None:
             ctl.set_speed(body.speed)
@@ -79,7 +94,7 @@ async def put_replay(body: ReplayUpdate, rt: RuntimeDep) -> dict:
 @router.post("/api/replay/seek", response_model=ReplayState, summary="jump to a frame or time",
              responses={409: {"description": "the current source is not a replay"}})
 async def seek(body: SeekRequest, rt: RuntimeDep) -> dict:
-    ctl = _replay(rt)
+    ctl = _replay_to_act(rt)
     st = ctl.state()
     if body.position is None and body.seconds is None:
         raise HTTPException(422, "give position (frames) or seconds")
@@ -95,6 +110,6 @@ async def seek(body: SeekRequest, rt: RuntimeDep) -> dict:
              summary="deliver n frames (while paused)",
              responses={409: {"description": "the current source is not a replay"}})
 async def step(body: StepRequest, rt: RuntimeDep) -> dict:
-    ctl = _replay(rt)
+    ctl = _replay_to_act(rt)
     ctl.step(body.n)
     return ctl.state()

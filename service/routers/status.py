@@ -2,19 +2,31 @@
 
 from __future__ import annotations
 
+from pathlib import PurePath
+
 from fastapi import APIRouter, Depends, Request, Response
 
-from cfsr_live.service.deps import HubDep, RuntimeDep, require_token
+from cfsr_live.service.deps import HubDep, RuntimeDep, hide_paths, require_token
 from cfsr_live.service.models import StatusModel
 
 router = APIRouter(tags=["status"], dependencies=[Depends(require_token)])
 
 
 @router.get("/api/status", response_model=StatusModel, summary="live figures and drop counters")
-async def get_status(rt: RuntimeDep, hub: HubDep) -> StatusModel:
+async def get_status(rt: RuntimeDep, hub: HubDep, request: Request) -> StatusModel:
     """Source, method, input steps/s, real-time factor, output fps, latency, and frames
     dropped at every stage: usb, replay, ring, worker, each client, recorder."""
-    return rt.status(hub)
+    st = rt.status(hub)
+    # the ring's file name only: an absolute server path tells a client nothing it can use
+    # (the listing hides them too) and something about the machine it should not learn
+    if st.ring.path is not None:
+        st.ring = st.ring.model_copy(update={"path": PurePath(st.ring.path).name})
+    settings = request.app.state.settings
+    st.source = st.source.model_copy(
+        update={"last_error": hide_paths(settings, st.source.last_error)})
+    st.recording = st.recording.model_copy(
+        update={"error": hide_paths(settings, st.recording.error)})
+    return st
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response)
