@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from contextlib import contextmanager
 from typing import Any
@@ -41,9 +42,18 @@ class TimeSpec:
             raise argparse.ArgumentTypeError(f"no times in {text!r}")
 
     def resolve(self, n_frames: int) -> list[int]:
+        """The steps, each checked against the recording's ``n_frames`` steps before any list
+        is made: ``0:100000000:1`` on a short file is one line, not gigabytes of step numbers
+        first."""
         out: list[int] = []
         for a, b, st in self.parts:
-            out.extend(range(a, n_frames if b is None else b, st))
+            stop = n_frames if b is None else b
+            if not (0 <= a < n_frames and a < stop <= n_frames):
+                last = f"{stop - 1}" if stop - 1 > a else f"{a}"
+                shown = f"{a}" if last == f"{a}" else f"{a}..{last}"
+                raise ValueError(f"--times {self.text[:80]!r}: steps {shown} lie outside the "
+                                 f"recording (0..{n_frames - 1})")
+            out.extend(range(a, stop, st))
         if not out:
             raise ValueError(
                 f"--times {self.text!r} selects no step of a {n_frames}-step recording"
@@ -86,6 +96,34 @@ def count_type(lo: int, hi: int, what: str, *, auto: bool = False):
         return v
 
     return parse
+
+
+def available_memory() -> int:
+    """Bytes of memory the system can give without swapping (``MemAvailable``; the free
+    physical pages where that is unknown)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62  # unknown: no bound from here
+
+
+def free_disk(path) -> tuple[int, str]:
+    """Free bytes on the disk that would hold ``path``, and the folder measured (the nearest
+    one that exists)."""
+    import shutil
+    from pathlib import Path
+
+    folder = Path(path).absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return shutil.disk_usage(folder).free, str(folder)
 
 
 def add_pool_arguments(p: argparse.ArgumentParser, workers_help: str) -> None:

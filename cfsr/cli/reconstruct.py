@@ -129,10 +129,10 @@ def run(args: argparse.Namespace) -> int:
     for f in files:
         args.input = str(f)
         rec = open_input(args)  # validates every file up front
-        times = args.times.resolve(rec.n_frames)
-        bad = [t for t in times if not 0 <= t < rec.n_frames]
-        if bad:
-            raise ValueError(f"{f}: times {bad[:5]} outside the recording (0..{rec.n_frames - 1})")
+        try:  # every step checked against the recording before a list of them is made
+            times = args.times.resolve(rec.n_frames)
+        except ValueError as exc:
+            raise ValueError(f"{f}: {exc}") from None
         if args.video:
             _video(args, rec, m.name, times, params)
             if args.no_files:

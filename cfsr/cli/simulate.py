@@ -25,6 +25,10 @@ SCENE_NAMES = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    # bounds only (the file format's: cfsr.datfile); what the machine has is checked in run()
+    from cfsr.cli._common import count_type
+    from cfsr.datfile import MAX_FRAMES, MAX_SIDE_PX
+
     p.add_argument(
         "scene",
         help=f"scene to render: {', '.join(SCENE_NAMES)}",
@@ -32,9 +36,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--steps",
         "-n",
-        type=int,
+        type=count_type(1, MAX_FRAMES, "steps"),
         default=2000,
-        help="frames to simulate (1 step = 25 us at 40 kHz); default 2000 (50 ms)",
+        help="frames to simulate (1 step = 25 us at 40 kHz); default 2000 (50 ms); the .dat "
+        "must fit the free disk space",
     )
     p.add_argument(
         "--out",
@@ -45,8 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="spike file to write; OUT.dat.json (sidecar) and OUT.gt.npz go beside it",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--height", type=int, default=250, help="frame height in pixels (250)")
-    p.add_argument("--width", type=int, default=400, help="frame width in pixels (400)")
+    p.add_argument("--height", type=count_type(1, MAX_SIDE_PX, "pixels"), default=250,
+                   help="frame height in pixels (250)")
+    p.add_argument("--width", type=count_type(1, MAX_SIDE_PX, "pixels"), default=400,
+                   help="frame width in pixels (400); width x height at most 2**24")
     p.add_argument(
         "--gain",
         type=float,
@@ -63,13 +70,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(threshold_sd, gain_sd, dark_rate, dark_sd, electrons_per_spike, hot_fraction, "
         "hot_rate); default: the scene's own (sensor for 'noisy', none otherwise)",
     )
-    p.add_argument("--start", type=int, default=0, help="scene step of the first frame (default 0)")
+    p.add_argument("--start", type=count_type(0, MAX_FRAMES, "steps"), default=0,
+                   help=f"scene step of the first frame, 0..{MAX_FRAMES} (default 0)")
     p.add_argument(
         "--gt-every",
-        type=int,
+        type=count_type(0, MAX_FRAMES, "steps"),
         default=100,
         metavar="K",
-        help="store ground truth (image, motion mask) every K frames; 0 for none (default 100)",
+        help="store ground truth (image, motion mask) every K frames; 0 for none (default "
+        "100); it is held in memory until written, so it must fit half the memory available",
     )
     p.add_argument(
         "--option",
@@ -102,6 +111,46 @@ def _scene_options(items: list[str]) -> dict[str, float | bool]:
     return out
 
 
+#: bytes of ground truth per pixel per stored frame: a float32 image and a bool mask
+_GT_BYTES_PER_PIXEL = 5
+
+
+def check_sizes(args: argparse.Namespace) -> None:
+    """Refuse, before anything is allocated or written, a simulation the machine cannot hold:
+    a frame over the format's pixels, a scene clock past :data:`~cfsr.datfile.MAX_FRAMES`, a
+    ``.dat`` larger than the free disk, ground truth over half the available memory.
+    ValueError (exit 2) naming the flag, the value and the limit."""
+    from cfsr.cli._common import available_memory, free_disk
+    from cfsr.datfile import MAX_FRAME_PIXELS, MAX_FRAMES
+
+    w, h, steps = args.width, args.height, args.steps
+    if w * h > MAX_FRAME_PIXELS:
+        raise ValueError(f"--width {w} x --height {h} = {w * h} pixels a frame, more than "
+                         f"the {MAX_FRAME_PIXELS} a .dat frame may hold")
+    if args.start + steps > MAX_FRAMES:
+        raise ValueError(f"--start {args.start} + --steps {steps} passes step {MAX_FRAMES}, the "
+                         "last a recording may reach")
+    frame_bytes = -(-h * w // 8)  # rows padded to whole bytes at most
+    need = steps * frame_bytes
+    free, folder = free_disk(args.out)
+    if need > free:
+        raise ValueError(f"--steps {steps}: {need / 1e9:.3g} GB of spikes at {w} x {h}, more "
+                         f"than the {free / 1e9:.3g} GB free in {folder}")
+    if args.gt_every:
+        n_gt = -(-steps // args.gt_every)
+        gt = n_gt * h * w * _GT_BYTES_PER_PIXEL
+        avail = available_memory()
+        if gt > avail // 2:
+            raise ValueError(
+                f"--gt-every {args.gt_every}: {n_gt} ground-truth frames need {gt / 1e9:.3g} GB "
+                f"of memory, more than half the {avail / 1e9:.3g} GB available; give a larger "
+                "--gt-every (or 0 for none)")
+        if need + gt > free:
+            raise ValueError(f"--steps {steps} with --gt-every {args.gt_every}: "
+                             f"{(need + gt) / 1e9:.3g} GB of spikes and ground truth, more than "
+                             f"the {free / 1e9:.3g} GB free in {folder}")
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -110,10 +159,7 @@ def run(args: argparse.Namespace) -> int:
     name = str(args.scene).strip().lower()
     if name not in SCENES:
         raise ValueError(f"unknown scene {args.scene!r}; choices: {', '.join(SCENES)}")
-    if args.steps < 1:
-        raise ValueError(f"--steps must be >= 1, got {args.steps}")
-    if args.gt_every < 0:
-        raise ValueError(f"--gt-every must be >= 0, got {args.gt_every}")
+    check_sizes(args)
     noise = Noise.parse(args.noise) if args.noise else None  # validate before any work
     scene = make_scene(name, height=args.height, width=args.width, **_scene_options(args.option))
     out = Path(args.out)
