@@ -25,7 +25,13 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
 from cfsr.cli import version
-from cfsr_live.service.body import MAX_QUOTE, Refusal, StrictJsonBody, short
+from cfsr_live.service.body import (
+    MAX_BODIES_IN_FLIGHT,
+    MAX_QUOTE,
+    Refusal,
+    StrictJsonBody,
+    short,
+)
 from cfsr_live.service.hub import FrameHub
 from cfsr_live.service.runtime import Runtime
 from cfsr_live.service.security import AttemptThrottle, SessionStore
@@ -153,7 +159,11 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         app.include_router(debug.router)
     # every request body, strict JSON of bounded size and time, before any route
     # (cfsr_live.service.body); the token is checked before a byte of it is read
-    app.add_middleware(StrictJsonBody, admit=_token_before_body)
+    # a quarter of the connections at most wait on bodies: the rest stay free for others
+    # (/healthz, the viewer) however many clients stall their bodies
+    app.add_middleware(StrictJsonBody, admit=_token_before_body,
+                       max_in_flight=max(4, min(MAX_BODIES_IN_FLIGHT,
+                                                settings.max_connections // 4)))
     # outermost: a request from a foreign page or a rebinding name goes no further
     app.add_middleware(
         HostOriginGuard,

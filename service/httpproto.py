@@ -29,12 +29,14 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 __all__ = [
     "ACCEPT_BATCH",
+    "LISTEN_QUEUE",
     "DEFAULT_MAX_CONNECTIONS",
     "HEADER_TIMEOUT_S",
     "HeadTimeoutH11Protocol",
     "RepeatedLogFilter",
     "connection_cap",
     "install_log_rate_limit",
+    "widen_listen_queue",
     "raise_open_file_limit",
 ]
 
@@ -45,10 +47,15 @@ HEADER_TIMEOUT_S = 10.0
 DEFAULT_MAX_CONNECTIONS = 1000
 #: connections accepted in one go (uvicorn's ``backlog``: asyncio accepts up to this many per
 #: wake-up, before any of them is counted against the cap)
-ACCEPT_BATCH = 64
-#: descriptors kept free beyond those open at start and the cap: two accept batches in
-#: flight before the cap closes them, plus the server's own (recordings, listings, pipes)
-_FD_RESERVE = 2 * ACCEPT_BATCH + 32
+ACCEPT_BATCH = 16
+#: connections the kernel queues before they are accepted (they hold no descriptor of ours
+#: there); set on the listening sockets after start (:func:`widen_listen_queue`), so that a
+#: burst is queued, not dropped (a dropped connection retries after 1 s, then 3 s)
+LISTEN_QUEUE = 2048
+#: descriptors kept free beyond those open at start and the cap: accept batches taken in
+#: the loop's turns before their connections are counted (measured: up to 5 in a burst), plus
+#: the server's own (recordings, listings, worker pipes)
+_FD_RESERVE = 8 * ACCEPT_BATCH + 32
 
 
 class HeadTimeoutH11Protocol(H11Protocol):
@@ -105,6 +112,16 @@ class HeadTimeoutH11Protocol(H11Protocol):
         super().connection_lost(exc)
 
 
+def widen_listen_queue(sockets, queue: int = LISTEN_QUEUE) -> None:
+    """Give each listening socket a kernel queue of ``queue`` connections (asyncio set it to
+    the accept batch, :data:`ACCEPT_BATCH`)."""
+    import socket
+
+    for ts in sockets:
+        with socket.socket(fileno=os.dup(ts.fileno())) as s:
+            s.listen(queue)
+
+
 def raise_open_file_limit(want: int = 65536) -> int:
     """Raise this process's soft open-file limit towards its hard limit (at most ``want``);
     the soft limit now in force. A server's connections are descriptors: a soft limit of 1,024
@@ -145,13 +162,13 @@ class RepeatedLogFilter(logging.Filter):
         self._lock = threading.Lock()
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if record.exc_info and str(record.msg).startswith(_CLIENT_FAULTS):
-            # a client's fault, handled (the connection is closed with 1007): one INFO line,
-            # not an ERROR with a traceback
+        level = next((lv for text, lv in _QUIETED if str(record.msg).startswith(text)), None)
+        if record.exc_info and level is not None:
+            # handled where it happens (the connection closed, the accept retried): one
+            # line at its level, not an ERROR with a traceback
             record.exc_info = record.exc_text = None
-            record.levelno, record.levelname = logging.INFO, "INFO"
-            record.msg = f"{record.msg} (closed with 1007)"
-            if not logging.getLogger(record.name).isEnabledFor(logging.INFO):
+            record.levelno, record.levelname = level, logging.getLevelName(level)
+            if not logging.getLogger(record.name).isEnabledFor(level):
                 return False
         key = (record.name, str(record.msg)[:200])
         now = time.monotonic()
@@ -169,8 +186,11 @@ class RepeatedLogFilter(logging.Filter):
         return True
 
 
-#: log messages (uvicorn's) that report a client's fault with an ERROR traceback
-_CLIENT_FAULTS = ("Invalid UTF-8 sequence received from client",)
+#: log messages logged as ERROR with a traceback for something handled, and their level:
+#: a client's invalid UTF-8 (uvicorn closes with 1007), and descriptors running out during a
+#: burst (asyncio pauses accepting for 1 s; the connection cap then catches up)
+_QUIETED = (("Invalid UTF-8 sequence received from client", logging.INFO),
+            ("socket.accept() out of system resource", logging.WARNING))
 
 #: loggers whose lines a client can make repeat: asyncio's accept loop, uvicorn's protocols
 _RATE_LIMITED = ("asyncio", "uvicorn.error", "websockets", "websockets.server",

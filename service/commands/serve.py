@@ -319,13 +319,23 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
     """The uvicorn server of ``rt``'s app (every ending signal trapped, request heads timed)."""
     import uvicorn
 
-    from cfsr_live.service.httpproto import ACCEPT_BATCH, connection_cap, raise_open_file_limit
+    from cfsr_live.service.httpproto import (
+        ACCEPT_BATCH,
+        connection_cap,
+        raise_open_file_limit,
+        widen_listen_queue,
+    )
     from cfsr_live.service.hub import MAX_CLIENT_MESSAGE_BYTES, MAX_CLIENT_MESSAGES_QUEUED
     from cfsr_live.service.signals import trap_ending_signals
 
     if rt.kernels.status().state == "compiling":
         say("first start here: compiling the methods' kernels in the background at low "
             "priority (a few minutes; progress in the viewer, 'kernels' in /api/status)")
+    cap = connection_cap(settings.max_connections, raise_open_file_limit())
+    if cap < settings.max_connections:
+        say(f"at most {cap} open connections (the open-file limit, 'ulimit -n', is lower "
+            f"than --max-connections {settings.max_connections} needs)")
+        settings.max_connections = cap  # the app sizes its body slots from it
     app = create_app(settings, runtime=rt)
     host = settings.host
     shown = f"[{host}]" if ":" in host else host
@@ -338,14 +348,12 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
 
         async def startup(self, sockets=None):
             await super().startup(sockets)
+            for srv in getattr(self, "servers", ()):
+                widen_listen_queue(srv.sockets)
             if self.started:
                 say(f"viewer at {url}  (source: {settings.source.id}"
                     f"{_token_note(settings.token)}; Ctrl+C to stop)")
 
-    cap = connection_cap(settings.max_connections, raise_open_file_limit())
-    if cap < settings.max_connections:
-        say(f"at most {cap} open connections (the open-file limit, 'ulimit -n', is lower "
-            f"than --max-connections {settings.max_connections} needs)")
     http = type("CappedH11Protocol", (http,), {"max_connections": cap})
     trusted = settings.trusted_proxies
     config = uvicorn.Config(
