@@ -28,7 +28,7 @@ os.environ.setdefault("CFSR_WARMUP", "0")
 #: fixtures that start something a quick run cannot afford: a real ``cfsr serve`` (module
 #: servers), a worker pipeline of processes, the built wheel and its venvs, the shared data
 SLOW_FIXTURES = frozenset({
-    "server", "back_on_a_dat", "pipeline", "pool_pipeline", "shared_pipeline",
+    "server", "back_on_a_dat", "pipeline", "pool_pipeline",
     "wheel_file", "base_install", "live_install", "shared_data", "reds_files",
 })
 #: names whose use in a test's body means it starts a real server or a worker process
