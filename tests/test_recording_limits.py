@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -138,3 +139,42 @@ def test_live_recording_stops_cleanly_at_its_cap_and_opens(tmp_path):
             assert r.status_code == 422 and "less than one block" in r.text, r.text
         assert not (data / "recordings" / "tiny.dat").exists()
         assert os.path.exists(path)
+
+
+def test_a_live_recording_stays_readable_when_another_writer_fills_the_disk(tmp_path):
+    """The live recorder on a disk another writer fills: the recording stops (disk nearly
+    full, or the write fails), and its .dat opens with its own geometry and a final sidecar
+    (before, the sidecar was lost 5 times of 5 and a 256 x 128 recording read as 400 x 250)."""
+    from cfsr_live.service.recorder import RESERVE_BYTES, Recorder
+    from cfsr_live.shm.ring import SpikeRing
+
+    lay = Layout(256, 128)
+    ring = SpikeRing.create(8, 64, lay.frame_bytes, directory=tmp_path)
+    size_mb = RESERVE_BYTES // 2**20 + 24
+    try:
+        with tiny_tmpfs(tmp_path / "fs", f"{size_mb}m") as fs:
+            rec = Recorder(ring, fs / "live.dat", lay, rate_hz=40_000.0, meta={"gain": 0.25})
+            k = 0
+            while rec.frames < 64 and k < 200:  # a few blocks on disk
+                ring.write(k * 64, np.full((64, lay.frame_bytes), k % 251, np.uint8))
+                k += 1
+                time.sleep(0.01)
+            with open(fs / "other", "wb", buffering=0) as f, contextlib.suppress(OSError):
+                while True:  # another writer takes every byte left
+                    f.write(b"\1" * 65536)
+            for _ in range(100):  # the recorder keeps being fed until it stops
+                if not rec.running:
+                    break
+                ring.write(k * 64, np.zeros((64, lay.frame_bytes), np.uint8))
+                k += 1
+                time.sleep(0.02)
+            st = rec.stop()
+            assert st.frames > 0 and st.stop_reason is not None, st
+            assert not (st.error or "").count("sidecar"), st.error
+            side = json.loads(sidecar_path(fs / "live.dat").read_text())
+            assert side["n_frames"] == st.frames and "complete" not in side
+            got = cfsr.read_dat(fs / "live.dat")
+            assert (got.layout.width, got.layout.height, got.n_frames) == (256, 128, st.frames)
+            assert got.gain == 0.25
+    finally:
+        ring.close()
