@@ -1,6 +1,8 @@
 """The browser viewer in a real headless Chromium (Playwright, system Chromium; never
-``playwright install``), served by the installed wheel (not the checkout), at the size of a
-laptop screen (1440 x 900).
+``playwright install``), served from the checkout with the kernels the suite compiled, at the
+size of a laptop screen (1440 x 900). (The installed wheel serving its viewer, WebSocket and
+MJPEG is tests/test_packaging.py's; a wheel's venv would compile every kernel again, numba's
+cache being keyed by each module's path: about 95 s of this test's waits.)
 
 What a user does is what the test does: frames arrive; the live figures update; a method is
 picked and applies by itself; a preset fills the form; a parameter change applies as typed;
@@ -26,7 +28,6 @@ from pathlib import Path
 import pytest
 from conftest import require_tier
 from livehelpers import LiveServer, write_pattern
-from wheelenv import clean_env
 
 CHROMIUM = os.environ.get("CFSR_CHROMIUM", "/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -93,14 +94,12 @@ def browser():
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory, live_install):
-    """The service as a user gets it: the installed wheel's ``cfsr serve`` (``cfsr[live]`` in a
-    fresh venv) on its built-in demo (the simulated rotating disk), started from a folder
-    that is not the checkout."""
+def server(tmp_path_factory):
+    """``cfsr serve`` with no source: its built-in demo (the simulated rotating disk), made in
+    a cache folder of its own."""
     d = tmp_path_factory.mktemp("viewer")
-    with LiveServer(["--data-dir", str(d / "data")],
-                    command=[str(live_install / "cfsr"), "serve"], cwd=d,
-                    env=clean_env(live_install)) as s:
+    with LiveServer(["--data-dir", str(d / "data")], cwd=d,
+                    env={"CFSR_CACHE_DIR": str(d / "cache")}) as s:
         yield s
 
 
@@ -351,7 +350,8 @@ def test_viewer_in_chromium(browser, server, tmp_path):
 @pytest.mark.timeout(900)
 def test_api_docs_work_offline(browser, server, tmp_path):
     """/docs (Swagger UI) and /redoc render with every request that leaves the machine
-    refused: their scripts, styles and fonts come from the wheel, not from a CDN."""
+    refused: their scripts, styles and fonts come from the installed packages, not from a
+    CDN."""
     context = browser.new_context(viewport=VIEWPORT)
     outside: list[str] = []
 
@@ -386,15 +386,13 @@ def test_api_docs_work_offline(browser, server, tmp_path):
 
 @pytest.mark.browser
 @pytest.mark.timeout(900)
-def test_viewer_asks_for_the_token_once(browser, live_install, tmp_path):
+def test_viewer_asks_for_the_token_once(browser, tmp_path):
     """With a token, the page asks for it, trades it for a session cookie and streams; the token
     is in no URL the page opens and in nothing the server prints."""
     dat = write_pattern(tmp_path / "data" / "pattern.dat", 3000)
     token = "tok-" + os.urandom(6).hex()
     with LiveServer(["--replay", str(dat), "--data-dir", str(tmp_path / "data"),
-                     "--token", token], token=token,
-                    command=[str(live_install / "cfsr"), "serve"], cwd=tmp_path,
-                    env=clean_env(live_install)) as s:
+                     "--token", token], token=token, cwd=tmp_path) as s:
         page = browser.new_page()
         urls: list[str] = []
         page.on("request", lambda r: urls.append(r.url))
