@@ -46,23 +46,8 @@ def _bounded(lo: float, hi: float, what: str):
     return parse
 
 
-def _int_in(lo: int, hi: int, what: str):
-    """An argparse type for an integer in [lo, hi] (digits only, at most 12 of them)."""
-
-    def parse(text: str) -> int:
-        t = text.strip()
-        if not (t.isdigit() and len(t) <= 12):
-            raise argparse.ArgumentTypeError(f"{text[:40]!r} is not a whole number of {what}")
-        v = int(t)
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"{v} is outside {lo}..{hi} {what}")
-        return v
-
-    return parse
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from cfsr.cli._common import add_pool_arguments
+    from cfsr.cli._common import add_pool_arguments, count_type
     from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
     from cfsr_live.service import sources
     from cfsr_live.service.httpproto import DEFAULT_MAX_CONNECTIONS
@@ -109,11 +94,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"seconds of sensor data the shared ring holds, {ring_lo:g}..{ring_hi:g} "
                    "(default 0.25; 1 s of a 400 x 250 camera is 500 MB of shared memory), "
                    "or less where that is over --ring-max-mb")
-    p.add_argument("--ring-max-mb", type=_int_in(cap_lo, cap_hi, "MiB"), default=1024,
+    p.add_argument("--ring-max-mb", type=count_type(cap_lo, cap_hi, "MiB"), default=1024,
                    help=f"the shared ring's size cap, {cap_lo}..{cap_hi} MiB (default 1024): "
                    "a source whose rate and geometry ask for more (a recording's sidecar "
                    "sets both) gets a shorter ring; one whose 8 blocks do not fit is refused")
-    p.add_argument("--max-connections", type=_int_in(16, 100_000, "connections"),
+    p.add_argument("--max-connections", type=count_type(16, 100_000, "connections"),
                    default=DEFAULT_MAX_CONNECTIONS,
                    help=f"open HTTP and WebSocket connections at most, 16..100000 (default "
                    f"{DEFAULT_MAX_CONNECTIONS}; lowered to stay under the open-file limit); one "
