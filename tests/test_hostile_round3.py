@@ -66,6 +66,22 @@ def test_the_ring_is_capped_in_bytes():
         SpikeRing.create(100, 256, 12_500, max_bytes=10_000_000)
 
 
+def test_the_ring_cap_fits_the_memory_available(monkeypatch):
+    from cfsr.cli import _common
+    from cfsr_live.service.commands.serve import _fit_ring_to_memory
+    from cfsr_live.service.settings import Settings
+
+    said = []
+    st = Settings(ring_max_bytes=1 << 30)
+    monkeypatch.setattr(_common, "available_memory", lambda: 2 << 30)  # 2 GiB free
+    _fit_ring_to_memory(st, said.append)
+    assert st.ring_max_bytes == 512 << 20 and "512 MiB" in said[0]
+    monkeypatch.setattr(_common, "available_memory", lambda: 64 << 30)
+    st = Settings(ring_max_bytes=1 << 30)
+    _fit_ring_to_memory(st, said.append)
+    assert st.ring_max_bytes == 1 << 30 and len(said) == 1
+
+
 # -- bodies ---------------------------------------------------------------------------------------
 def _run_body(mw, body_parts, *, delay: float = 0.0, stall: bool = False):
     """Drive the middleware with one PUT whose body comes in ``body_parts`` (``delay`` s before

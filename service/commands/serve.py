@@ -95,7 +95,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(default 0.25; 1 s of a 400 x 250 camera is 500 MB of shared memory), "
                    "or less where that is over --ring-max-mb")
     p.add_argument("--ring-max-mb", type=count_type(cap_lo, cap_hi, "MiB"), default=1024,
-                   help=f"the shared ring's size cap, {cap_lo}..{cap_hi} MiB (default 1024): "
+                   help=f"the shared ring's size cap, {cap_lo}..{cap_hi} MiB (default 1024, "
+                   "and at most a quarter of the memory available at start): "
                    "a source whose rate and geometry ask for more (a recording's sidecar "
                    "sets both) gets a shorter ring; one whose 8 blocks do not fit is refused")
     p.add_argument("--max-connections", type=count_type(16, 100_000, "connections"),
@@ -256,6 +257,19 @@ def run(args: argparse.Namespace) -> int:
         lock.close()
 
 
+def _fit_ring_to_memory(settings, say) -> None:
+    """Lower the ring's cap to a quarter of the memory available now (not below the smallest
+    cap): the ring lives in shared memory, and a fast source fills all of it."""
+    from cfsr.cli._common import available_memory
+    from cfsr_live.service.settings import RING_MAX_MB_RANGE
+
+    share = max(RING_MAX_MB_RANGE[0] << 20, available_memory() // 4)
+    if share < settings.ring_max_bytes:
+        say(f"the ring holds at most {share >> 20} MiB (a quarter of the memory available), "
+            f"less than --ring-max-mb {settings.ring_max_bytes >> 20}")
+        settings.ring_max_bytes = share
+
+
 def _serve(settings, args: argparse.Namespace, say) -> int:
     """Start the runtime, serve until stopped, stop; the exit status."""
     from cfsr_live.service.signals import ignore_ending_signals
@@ -263,6 +277,7 @@ def _serve(settings, args: argparse.Namespace, say) -> int:
     stale = _remove_stale_segments()
     if stale:
         say(f"removed {stale} shared-memory file(s) left by a server that did not stop cleanly")
+    _fit_ring_to_memory(settings, say)
     from cfsr_live.service import sources
 
     # slow first-use work (the demo's simulation) is said here, before the service starts
