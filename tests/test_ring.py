@@ -51,6 +51,82 @@ def test_roundtrip_in_order(ring):
     assert got == [(0, 1000, 4), (1, 1004, 3), (2, 1007, 4), (3, 1011, 1)]
     assert rd.lost_frames == 0 and rd.frames_read == 12
     assert ring.head == 4 and ring.frames_published == 12
+    assert rd.backlog == 0
+
+
+def test_blocks_carry_the_host_time_of_their_write(ring):
+    rd = ring.reader(start="latest")
+    before = time.monotonic()
+    ring.write(0, _block(0, 4))
+    ring.write(4, _block(4, 4), t_host=12.5)
+    assert rd.backlog == 2
+    first, second = rd.poll(), None
+    assert before <= first.t_host <= time.monotonic()
+    assert rd.release(first)
+    second = rd.poll()
+    assert second.t_host == 12.5 and rd.backlog == 1
+
+
+def test_an_oldest_reader_starts_at_the_oldest_block_still_held(ring):
+    """On a lapped ring the oldest start is the oldest slot the producer has not begun to
+    reuse: read from there, nothing counts as an overrun or a loss."""
+    for i in range(ring.n_slots + 3):
+        ring.write(4 * i, _block(4 * i, 4))
+    rd = ring.reader(start="oldest")
+    assert rd.backlog == ring.n_slots - 1
+    got = []
+    while (r := rd.read()) is not None:
+        _check(r[0].index, r[1])
+        got.append(r[0].seq)
+    assert got == list(range(4, ring.n_slots + 3))
+    assert rd.overruns == 0 and rd.lost_frames == 0
+
+
+def test_lost_blocks_count_whole_blocks_overrun_and_torn(ring):
+    rd = ring.reader(start="latest", keep=1)
+    ring.write(0, _block(0, 4))
+    assert rd.read() is not None
+    for i in range(1, 12):  # 11 blocks of 4 frames: the reader (8 slots) keeps only the last
+        ring.write(4 * i, _block(4 * i, 4))
+    blk, _ = rd.read()
+    assert blk.index == 44 and rd.overruns == 1
+    assert (rd.lost_frames, rd.lost_blocks) == (40, 10)
+    ring.write(48, _block(48, 4))
+    held = rd.poll()
+    for i in range(13, 13 + ring.n_slots):  # lapped while the view is held: torn
+        ring.write(4 * i, _block(4 * i, 4))
+    assert not rd.release(held)
+    assert (rd.torn, rd.lost_frames, rd.lost_blocks) == (1, 44, 11)
+
+
+def test_an_overrun_of_one_block_loses_one_block(ring):
+    rd = ring.reader(start="latest", keep=ring.n_slots - 1)
+    ring.write(0, _block(0, 4))
+    assert rd.read() is not None
+    for i in range(1, ring.n_slots + 1):  # one block more than the reader can still reach
+        ring.write(4 * i, _block(4 * i, 4))
+    blk, _ = rd.read()
+    assert blk.index == 8 and (rd.overruns, rd.lost_frames, rd.lost_blocks) == (1, 4, 1)
+
+
+def test_slots_for_holds_the_frames_asked_within_the_byte_cap():
+    big = 1 << 30
+    assert SpikeRing.slots_for(1000, 4, FB, max_bytes=big) == 250
+    assert SpikeRing.slots_for(1001, 4, FB, max_bytes=big) == 251  # whole frames, rounded up
+    assert SpikeRing.slots_for(10, 4, FB, max_bytes=big) == 8  # min_slots
+    cap = 2 * 4096 + 20 * (64 + 4 * FB)  # the header's pages and 20 slots
+    n = SpikeRing.slots_for(1000, 4, FB, max_bytes=cap)
+    assert n == 20 and SpikeRing.nbytes_for(n, 4, FB) <= cap
+    with pytest.raises(ValueError, match="over the ring's cap"):
+        SpikeRing.slots_for(1000, 4, FB, max_bytes=cap // 4)
+
+
+def test_ring_sizes_are_checked():
+    small = SpikeRing.create(2, 1, FB)  # the smallest ring: two slots of one frame
+    small.close()
+    for args in ((1, 4, FB), (8, 0, FB), (8, 4, 0)):
+        with pytest.raises(ValueError):
+            SpikeRing.create(*args)
 
 
 def test_large_block_is_split_and_flags_kept(ring):
