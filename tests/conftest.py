@@ -33,7 +33,7 @@ SLOW_FIXTURES = frozenset({
 })
 #: names whose use in a test's body means it starts a real server or a worker process
 SLOW_NAMES = frozenset({"LiveServer", "WorkerSupervisor", "_pipeline"})
-#: modules that are long runs as a whole: accuracy tables, the benchmark, the hour-long
+#: modules that are long runs as a whole: accuracy tables, the benchmark, the million-step
 #: stream, the fault matrices (a server per row group), kernel compiles into fresh caches
 SLOW_MODULES = frozenset({
     "test_accuracy_sim", "test_accuracy_data", "test_bench", "test_stress_long",
@@ -58,7 +58,8 @@ def _is_slow(item: pytest.Item) -> bool:
         return True
     if SLOW_FIXTURES & set(getattr(item, "fixturenames", ())):
         return True
-    if item.module is not None and item.module.__name__.rpartition(".")[2] in SLOW_MODULES:
+    module = getattr(item, "module", None)  # None for items that are not Python functions
+    if module is not None and module.__name__.rpartition(".")[2] in SLOW_MODULES:
         return True
     fn = getattr(item, "function", None)
     return fn is not None and bool(SLOW_NAMES & _code_names(fn.__code__))
