@@ -10,15 +10,16 @@ intermediate full-size copy is made.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+
+from cfsr._jit import njit
 
 __all__ = ["pack_frames", "unpack_frames", "unpack_layout"]
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _unpack_kernel(packed, out, stored_width, flipud, fliplr):  # pragma: no cover - numba
     n, height, width = out.shape
-    for t in prange(n):
+    for t in range(n):
         frame = packed[t]
         for r in range(height):
             rr = height - 1 - r if flipud else r

@@ -7,19 +7,19 @@ searches in its own way and calls :func:`tfi_interval` with what it found.
 
 from __future__ import annotations
 
-from numba import njit
+from cfsr._jit import njit
 
 __all__ = ["search_range", "tfi_interval", "needs_before", "needs_after", "isi_from_times"]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def search_range(c, m, n):  # pragma: no cover - numba
     """Steps ``[a, b)`` searched for the spikes around step ``c``: ``m`` steps each side,
     inside a window of ``n`` steps (the ``max_isi`` reach of Eq. 3)."""
     return max(0, c - m), min(n, c + m + 1)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def tfi_interval(p, n, pp, nn, a, b):  # pragma: no cover - numba
     """The interval (steps, >= 1) containing step c, spikes searched in ``[a, b)``.
 
@@ -42,19 +42,19 @@ def tfi_interval(p, n, pp, nn, a, b):  # pragma: no cover - numba
     return b - a + 1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def needs_before(p, n):  # pragma: no cover - numba
     """Whether :func:`tfi_interval` reads ``pp`` (the interval is open on the right)."""
     return p >= 0 and n < 0
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def needs_after(p, n):  # pragma: no cover - numba
     """Whether :func:`tfi_interval` reads ``nn`` (the interval is open on the left)."""
     return p < 0 and n >= 0
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def isi_from_times(tv, ns, ip, a, b):  # pragma: no cover - numba
     """:func:`tfi_interval` at a step c from a pixel's ascending spike times ``tv[:ns]``;
     ``ip`` indexes the last spike ``<= c`` (-1: none); spikes searched in ``[a, b)``."""

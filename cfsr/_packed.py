@@ -9,9 +9,9 @@ columns included); :func:`stored_to_image` turns them into the upright ``(H, W)`
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 
 from cfsr._isi import needs_after, needs_before, tfi_interval
+from cfsr._jit import njit
 from cfsr.layout import Layout
 
 __all__ = [
@@ -32,11 +32,11 @@ LANES = np.array(
 CHUNK = 64  # byte columns per task: one cache line of every frame
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _count_kernel(packed, a, b, lanes, out):  # pragma: no cover - numba
     nb = packed.shape[1]
     nchunks = (nb + CHUNK - 1) // CHUNK
-    for c in prange(nchunks):
+    for c in range(nchunks):
         b0 = c * CHUNK
         m = min(nb, b0 + CHUNK) - b0
         acc = np.empty(CHUNK, np.uint64)
@@ -69,12 +69,12 @@ def count_packed(
     return _count_kernel(packed, a, b, LANES, out)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _bit(packed, t, p):  # pragma: no cover - numba
     return (packed[t, p >> 3] >> (p & 7)) & 1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _prev_bit(packed, p, t, lo):  # pragma: no cover - numba
     """Last frame in ``[lo, t]`` where stored pixel ``p`` fired (-1: none)."""
     while t >= lo:
@@ -84,7 +84,7 @@ def _prev_bit(packed, p, t, lo):  # pragma: no cover - numba
     return -1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _next_bit(packed, p, t, hi):  # pragma: no cover - numba
     """First frame in ``[t, hi)`` where stored pixel ``p`` fired (-1: none)."""
     while t < hi:
@@ -94,7 +94,7 @@ def _next_bit(packed, p, t, hi):  # pragma: no cover - numba
     return -1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _isi_bits(packed, p, c, lo, hi):  # pragma: no cover - numba
     """:func:`cfsr._isi.tfi_interval` at frame ``c`` for stored pixel ``p``, reading its bits
     in place."""
@@ -105,17 +105,17 @@ def _isi_bits(packed, p, c, lo, hi):  # pragma: no cover - numba
     return tfi_interval(prev, nxt, pp, nn, lo, hi)
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _isi_kernel(packed, c, lo, hi, out):  # pragma: no cover - numba
     npix = out.shape[0]
-    for p in prange(npix):
+    for p in range(npix):
         out[p] = _isi_bits(packed, p, c, lo, hi)
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _isi_at_kernel(packed, pixels, c, lo, hi, out):  # pragma: no cover - numba
-    for j in prange(pixels.shape[0]):
+    for j in range(pixels.shape[0]):
         out[j] = _isi_bits(packed, pixels[j], c, lo, hi)
     return out
 

@@ -22,8 +22,10 @@ from typing import NamedTuple
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, types
+from numba import types
 from numba.extending import intrinsic, overload
+
+from cfsr._jit import njit
 
 __all__ = [
     "ENABLED",
@@ -151,7 +153,7 @@ def box6x8_min(typingctx, ref, tgt, rb, tb, stride, cy, cx, lanes):
     return sig, codegen
 
 
-@njit(cache=True)
+@njit
 def box6x8_min_numba(ref, tgt, rb, tb, stride, cy, cx, lanes, cols):  # pragma: no cover - numba
     """:func:`box6x8_min` in plain numba: the same float32 operations in the same order.
 

@@ -4,7 +4,8 @@ that must not depend on thread scheduling (the simulator's noise, PatchMatch's s
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from cfsr._jit import njit
 
 __all__ = ["GOLDEN", "mix64"]
 
@@ -14,7 +15,7 @@ _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
 _MIX2 = np.uint64(0x94D049BB133111EB)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def mix64(z):  # pragma: no cover - numba
     """splitmix64 finaliser: a well-spread 64-bit hash of ``z`` (uint64)."""
     z = (z ^ (z >> np.uint64(30))) * _MIX1

@@ -20,12 +20,13 @@ from typing import NamedTuple
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, types
+from numba import types
 from numba.core import cgutils
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import intrinsic
 
 from cfsr._isi import needs_after, needs_before, tfi_interval
+from cfsr._jit import njit
 from cfsr.layout import Layout
 
 __all__ = [
@@ -134,7 +135,7 @@ class PackedWindow:
         return cls(packed, layout.height, layout.width, geometry(layout))
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def transpose64(a):  # pragma: no cover - numba
     """Transpose the 64 x 64 bit matrix ``a`` (64 uint64) in place: bit ``j`` of ``a[r]``
     goes to bit ``r`` of ``a[j]`` (Warren, *Hacker's Delight*, 7-3: six rounds of block swaps).
@@ -158,7 +159,7 @@ def transpose64(a):  # pragma: no cover - numba
 WORD_STEPS = 64
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def n_words(lo, hi):  # pragma: no cover - numba
     """Words (:data:`WORD_STEPS` steps each) a pixel needs for steps ``[lo, hi)``."""
     return (hi - lo + WORD_STEPS - 1) // WORD_STEPS
@@ -170,7 +171,7 @@ def n_words(lo, hi):  # pragma: no cover - numba
 ROW_PAD = 80
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def row_words(packed, geo, lo, hi, y, x0, x1, words):  # pragma: no cover - numba
     """Words of image pixels ``x0 .. x1-1`` of row ``y`` over steps ``[lo, hi)``.
 
@@ -232,7 +233,7 @@ class Stored(NamedTuple):
     bases: np.ndarray  #: int64 (H, 2) or (0, 2)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def row_or_stored(packed, geo, lo, hi, y, w, store, bases):  # pragma: no cover - numba
     """Words of image row ``y`` over ``[lo, hi)`` as ``(words, base, step)`` (see
     :func:`row_words`): ``store[y]`` when ``store`` holds one row per image row (the words a
@@ -244,7 +245,7 @@ def row_or_stored(packed, geo, lo, hi, y, w, store, bases):  # pragma: no cover 
     return words, base, step
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def word_spikes(w, base, times, i):  # pragma: no cover - numba
     """Steps of the set bits of word ``w`` (bit ``b`` = step ``base + b``) into
     ``times[i:]``, ascending; returns the index after the last one written."""
@@ -256,7 +257,7 @@ def word_spikes(w, base, times, i):  # pragma: no cover - numba
     return i
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def word_times(words, k, nw, lo, times):  # pragma: no cover - numba
     """Spike steps of word row ``k`` into ``times`` (ascending); returns how many."""
     ns = 0
@@ -265,7 +266,7 @@ def word_times(words, k, nw, lo, times):  # pragma: no cover - numba
     return ns
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _window(words, k, lo, q, a, b):  # pragma: no cover - numba
     """Word ``q`` of row ``k`` with the steps outside ``[a, b)`` cleared."""
     one = np.uint64(1)
@@ -280,7 +281,7 @@ def _window(words, k, lo, q, a, b):  # pragma: no cover - numba
     return w
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def prefix_counts(words, k, nw, prefix):  # pragma: no cover - numba
     """``prefix[q]`` = spikes of row ``k`` in its words ``0 .. q-1`` (for :func:`count_range`)."""
     c = 0
@@ -290,7 +291,7 @@ def prefix_counts(words, k, nw, prefix):  # pragma: no cover - numba
     prefix[nw] = c
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _before(words, k, lo, prefix, t):  # pragma: no cover - numba
     """Spikes of row ``k`` in ``[lo, t)``."""
     q = (t - lo) >> 6
@@ -301,7 +302,7 @@ def _before(words, k, lo, prefix, t):  # pragma: no cover - numba
     return prefix[q] + np.int64(popcount(words[k, q] & mask))
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def count_range(words, k, lo, prefix, a, b):  # pragma: no cover - numba
     """Spikes of row ``k`` in steps ``[a, b)`` (``lo <= a <= b <= lo + 64 * nw``), from the
     row's :func:`prefix_counts` and at most two masked popcounts."""
@@ -310,7 +311,7 @@ def count_range(words, k, lo, prefix, a, b):  # pragma: no cover - numba
     return _before(words, k, lo, prefix, b) - _before(words, k, lo, prefix, a)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def prev_spike(words, k, lo, t, a):  # pragma: no cover - numba
     """Last spike step of row ``k`` in ``[a, t]`` (-1: none); ``lo <= a``."""
     if t < a:
@@ -328,7 +329,7 @@ def prev_spike(words, k, lo, t, a):  # pragma: no cover - numba
         w = words[k, q]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def next_spike(words, k, lo, t, b):  # pragma: no cover - numba
     """First spike step of row ``k`` in ``[t, b)`` (-1: none); ``b`` within the words."""
     if b <= t:
@@ -346,7 +347,7 @@ def next_spike(words, k, lo, t, b):  # pragma: no cover - numba
         w = words[k, q]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def range_times(words, k, lo, a, b, times):  # pragma: no cover - numba
     """Spike steps of row ``k`` in ``[a, b)`` into ``times`` (ascending); returns how many."""
     ns = 0
@@ -357,7 +358,7 @@ def range_times(words, k, lo, a, b, times):  # pragma: no cover - numba
     return ns
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def isi_in_words(words, r, lo, c, a, b):  # pragma: no cover - numba
     """The TFI interval (Eq. 3, :func:`cfsr._isi.tfi_interval`) of word row ``r`` at step
     ``c``, spikes searched in ``[a, b)``, by bit scans (no spike list)."""
@@ -368,7 +369,7 @@ def isi_in_words(words, r, lo, c, a, b):  # pragma: no cover - numba
     return tfi_interval(p, n, pp, nn, a, b)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def count_between(words, k, lo, a, b):  # pragma: no cover - numba
     """Spikes of row ``k`` in steps ``[a, b)``: masked popcounts of the words covering the
     span only (:func:`count_range` without a whole-row prefix, for a few short spans)."""

@@ -1,4 +1,4 @@
-"""The library's front door: ``reconstruct`` and ``reconstruct_many``."""
+"""The library's front door: ``reconstruct`` and ``reconstruct_outputs``."""
 
 from __future__ import annotations
 

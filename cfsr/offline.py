@@ -19,11 +19,15 @@ from cfsr.methods.registry import Output
 from cfsr.spikes import SpikeRecording
 from cfsr.streaming import StreamingReconstructor
 
-__all__ = ["carry_groups", "stream_reconstruct", "POOL_MIN_MS"]
+__all__ = ["carry_groups", "stream_reconstruct", "POOL_MIN_MS", "POOL_START_S"]
 
 #: ``workers=None`` starts the pool only when the first group took at least this long per
 #: output (ms): below it, copying windows to the processes costs about what they save
 POOL_MIN_MS = 20.0
+#: what starting the pool costs before its first frame (s): spawning its processes, their
+#: imports and their kernels' loading from the cache; paid once per process (the pool is
+#: reused), so ``workers=None`` starts it only for work of at least twice this long
+POOL_START_S = 3.0
 
 
 def _spans(
@@ -84,13 +88,15 @@ def stream_reconstruct(
         and pushed through one :class:`StreamingReconstructor`, spans between distant times
         skipped. N > 1: on a :class:`~cfsr.pool.FramePool` of N processes of ``threads``
         threads, one carry group (:func:`carry_groups`) per task. None: the first group here,
-        timed; the pool (one process per usable core) for the rest when there are at least
-        two groups per process left and the first took :data:`POOL_MIN_MS` or more per
-        output. The outputs are the same in every case.
+        timed; the pool (one process per usable core; this process's shared pool, started
+        once and reused by later calls) for the rest when there are at least two groups per
+        process left, the first took :data:`POOL_MIN_MS` or more per output, and the rest
+        would take here at least twice what starting the pool costs (:data:`POOL_START_S`;
+        nothing when the shared pool already runs). The outputs are the same in every case.
     pool : FramePool, optional
         A running pool to use (then ``workers`` and ``threads`` are ignored).
     """
-    from cfsr.pool import default_workers, pool_outputs
+    from cfsr.pool import default_workers, pool_outputs, shared_pool_running
 
     ts = sorted({int(t) for t in times})
     bad = [t for t in ts if not 0 <= t < rec.n_frames]
@@ -117,7 +123,9 @@ def stream_reconstruct(
             yield from _streamed(rec, sr, groups[0], block)
             per_output = (time.perf_counter() - t0) * 1e3 / len(groups[0])
             groups = groups[1:]
-            workers = n if per_output >= POOL_MIN_MS else 1
+            left_s = per_output * sum(map(len, groups)) / 1e3  # what the rest costs here
+            start_s = 0.0 if shared_pool_running(threads) else POOL_START_S
+            workers = n if per_output >= POOL_MIN_MS and left_s >= 2 * start_s else 1
         if workers == 1:
             sr = StreamingReconstructor(cfg, rec.layout, slack=block)
             yield from _streamed(rec, sr, [t for g in groups for t in g], block)

@@ -11,19 +11,19 @@ interval) and mean rates (Eq. 4 over the whole stream) are available at any mome
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 
+from cfsr._jit import njit
 from cfsr._packed import CHUNK, count_packed, stored_to_image
 from cfsr.layout import Layout
 
 __all__ = ["PixelState"]
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _last_two(packed, start, last, isi, t1, t2):  # pragma: no cover - numba
     n, nb = packed.shape
     nchunks = (nb + CHUNK - 1) // CHUNK
-    for c in prange(nchunks):
+    for c in range(nchunks):
         b0 = c * CHUNK
         m = min(nb, b0 + CHUNK) - b0
         seen1 = np.zeros(CHUNK, np.uint8)  # pixels seen once, scanning back from the end

@@ -28,18 +28,21 @@ Results (rates and masks, 0.5 MB a frame) come back pickled on one queue.
 
 from __future__ import annotations
 
+import atexit
+import logging
 import mmap
 import multiprocessing as mp
 import os
 import queue
 import signal
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,17 +50,26 @@ from cfsr.config import MethodConfig
 from cfsr.layout import Layout
 from cfsr.methods.registry import Output
 
+if TYPE_CHECKING:
+    from cfsr._jit import CompileActivity
+
 __all__ = [
     "FramePool",
     "PoolError",
     "PoolResult",
+    "CompileBeat",
     "TaskError",
     "default_workers",
     "release_queue",
     "ignore_stop_signals",
     "stop_signals_blocked",
     "pool_outputs",
+    "shared_pool",
+    "start_compile_beat",
+    "close_shared_pool",
 ]
+
+log = logging.getLogger("cfsr.pool")
 
 #: how long a process waits for a task before it checks that its parent still lives (s)
 _PARENT_CHECK_S = 1.0
@@ -98,6 +110,26 @@ class PoolResult:
     outputs: list[tuple[int, Output]]
     compute_ms: list[float]
     worker: int
+
+
+@dataclass(frozen=True)
+class CompileBeat:
+    """A pool process's report of a kernel compile in progress, sent every
+    :data:`COMPILE_BEAT_S` while it lasts and once when it ends.
+
+    ``kernel``: the kernel compiled, or waited for while another process compiles it
+    (``waiting``); None once the compile ended. ``kernels``: kernels compiled or loaded from
+    the cache since the process's current task began; ``cpu_s``: CPU seconds the process
+    spent since then."""
+
+    kernel: str | None
+    waiting: bool
+    kernels: int
+    cpu_s: float
+
+    @property
+    def busy(self) -> bool:
+        return self.kernel is not None
 
 
 @dataclass(frozen=True)
@@ -145,6 +177,7 @@ def _pool_main(
 ) -> None:
     """Entry point of a pool process: map the region, answer tasks until told to stop."""
     from cfsr._heap import keep_freed_memory
+    from cfsr._jit import activity, waiting_for
 
     # Ctrl+C, a closed terminal, Ctrl+\ and a kill of the process group reach us too: the
     # pool's owner stops us (and releases what we share) rather than the signal half-way
@@ -160,6 +193,14 @@ def _pool_main(
     finally:
         os.close(fd)
     result_q.put(("ready", index, os.getpid()))
+    base = [0, 0.0]  # kernels compiled or loaded, and CPU seconds, when the task began
+
+    def report(act: CompileActivity) -> None:
+        beat = CompileBeat(act.kernel, act.waiting, act.compiled + act.loaded - base[0],
+                           time.process_time() - base[1])
+        result_q.put(("compiling", index, beat))
+
+    start_compile_beat(report)
     buf = np.frombuffer(region, np.uint8)
     while True:
         try:
@@ -170,9 +211,12 @@ def _pool_main(
             continue
         if task is None:
             return
+        act = activity()
+        base[:] = [act.compiled + act.loaded, time.process_time()]
         try:
-            if task.delay:
-                time.sleep(task.delay)
+            if task.delay:  # test hook: a first frame held as by another process's compile
+                with waiting_for("(injected delay)"):
+                    time.sleep(task.delay)
             m = task.config.spec
             fb = task.layout.frame_bytes
             frames = buf[: task.n_frames * fb].reshape(task.n_frames, fb)
@@ -189,6 +233,35 @@ def _pool_main(
         except Exception as exc:  # noqa: BLE001 - reported to the owner, which decides
             msg = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
             result_q.put(("error", index, (task.tag, msg)))
+
+
+#: seconds between two reports of a compile in progress (the pool process's heartbeat)
+COMPILE_BEAT_S = 1.0
+
+
+def start_compile_beat(send: Any, every: float = COMPILE_BEAT_S) -> threading.Thread:
+    """In a process that may compile kernels: a daemon thread that calls ``send(activity)``
+    (a :class:`cfsr._jit.CompileActivity`) every ``every`` seconds while numba compiles one of
+    cfsr's kernels here or waits for another process's compile of one, and once when that
+    ends. The compile holds the process's main thread for as long as it takes (minutes on a
+    busy machine); this beat is how its owner tells it from a hung one."""
+    from cfsr._jit import activity
+
+    def beat() -> None:
+        was_busy = False
+        while True:
+            act = activity()
+            if act.busy or was_busy:
+                try:
+                    send(act)
+                except (OSError, ValueError):  # the owner is gone
+                    return
+            was_busy = act.busy
+            time.sleep(every)
+
+    th = threading.Thread(target=beat, name="cfsr-compile-beat", daemon=True)
+    th.start()
+    return th
 
 
 #: the signals that end a process group (Ctrl+C, a closed terminal, Ctrl+\, kill): a
@@ -241,6 +314,39 @@ def release_queue(q: Any, timeout: float = 1.0) -> None:
         feeder.join(timeout)
 
 
+_spawn_lock = threading.Lock()
+
+
+@contextmanager
+def _spawn_without_main() -> Iterator[None]:
+    """Start processes that do not re-run the caller's ``__main__``.
+
+    A spawned process normally imports the parent's main module first (``spawn`` re-runs a
+    script as ``__mp_main__``), which crashes a script with no ``if __name__ ==
+    "__main__":`` guard (its pool start runs again, inside the bootstrapping child) and one
+    read from stdin (the child looks for a file named ``<stdin>``). A pool process needs
+    nothing of the caller's main module: its target and every task are cfsr's own objects,
+    pickled by reference. So the preparation data the child receives leaves the main module
+    out, whatever the caller is: a script with or without a guard, stdin, the REPL, a
+    notebook."""
+    import multiprocessing.spawn as mp_spawn
+
+    with _spawn_lock:
+        original = mp_spawn.get_preparation_data
+
+        def without_main(name: str) -> dict[str, Any]:
+            d = original(name)
+            d.pop("init_main_from_path", None)
+            d.pop("init_main_from_name", None)
+            return d
+
+        mp_spawn.get_preparation_data = without_main
+        try:
+            yield
+        finally:
+            mp_spawn.get_preparation_data = original
+
+
 def _shm_folder() -> str:
     return "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
 
@@ -291,6 +397,8 @@ class FramePool:
         self._busy: dict[int, Any] = {}  # worker -> tag of the task it runs
         self._result_q: Any = None
         self._wait = bool(wait)
+        #: per process: (when heard, what it reported) of its latest compile heartbeat
+        self._compiles: dict[int, tuple[float, CompileBeat]] = {}
         self._start()
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -319,9 +427,11 @@ class FramePool:
                     name=f"cfsr-pool-{k}",
                     daemon=True,
                 )
-                with stop_signals_blocked():
+                with stop_signals_blocked(), _spawn_without_main():
                     p.start()
                 self._procs.append(p)
+            log.info("cfsr pool: %d process(es) of %d thread(s), started with 'spawn' "
+                     "(the caller's __main__ is not re-run in them)", self.workers, self.threads)
             self.pids = [0] * self.workers
             self._unready = set(range(self.workers))
             end = time.monotonic() + 120.0
@@ -342,7 +452,9 @@ class FramePool:
                 self._unlink_regions()
 
     def _ready_msg(self, kind: str, k: int, pid: Any) -> None:
-        if kind == "ready":
+        if kind == "compiling":
+            self._compiles[k] = (time.monotonic(), pid)
+        elif kind == "ready":
             self.pids[k] = pid
             self._unready.discard(k)
             if not self._unready:
@@ -433,6 +545,26 @@ class FramePool:
             except (OSError, ValueError):  # pragma: no cover - a kernel without it
                 pass
 
+    # -- compiles ----------------------------------------------------------------------------
+    def compiling(self, k: int, stale_s: float = 10 * COMPILE_BEAT_S) -> CompileBeat | None:
+        """What process ``k`` reported it compiles (or waits for) now, or None: it reported
+        no compile in progress, or its last beat is older than ``stale_s`` (a process stuck
+        elsewhere stops beating). Beats are read by :meth:`collect`."""
+        got = self._compiles.get(k)
+        if got is None or not got[1].busy or time.monotonic() - got[0] > stale_s:
+            return None
+        return got[1]
+
+    def compile_ended(self, k: int) -> float:
+        """When process ``k`` was last heard compiling (``time.monotonic()``; 0 if never): a
+        task's time spent compiling is not a hang's."""
+        got = self._compiles.get(k)
+        return got[0] if got is not None else 0.0
+
+    def compile_report(self) -> dict[int, CompileBeat]:
+        """The latest compile report of each process that sent one."""
+        return {k: a for k, (_, a) in self._compiles.items()}
+
     # -- tasks -------------------------------------------------------------------------------
     @property
     def idle(self) -> list[int]:
@@ -497,7 +629,7 @@ class FramePool:
                 if end is not None and time.monotonic() >= end:
                     return None
                 continue
-            if kind == "ready":
+            if kind in ("ready", "compiling"):
                 self._ready_msg(kind, k, payload)
                 continue
             if kind == "done":
@@ -510,6 +642,52 @@ class FramePool:
                 tag, msg = payload
                 raise TaskError(tag, f"reconstruction of task {tag!r} failed in pool "
                                 f"process {k}: {msg}")
+
+
+# ----------------------------------------------------------------------------------------------
+# one pool per process, reused by every call
+# ----------------------------------------------------------------------------------------------
+_shared: FramePool | None = None
+_shared_lock = threading.Lock()  # held by the call using the shared pool
+
+
+def shared_pool(workers: int | None = None, threads: int = 1) -> FramePool:
+    """This process's pool of ``workers`` processes of ``threads`` threads, started at its
+    first use and kept for later calls (closed at exit, or by :func:`close_shared_pool`): a
+    second :func:`cfsr.reconstruct` pays no process start and no kernel load. A call asking
+    for another shape restarts it. Not thread-safe: :func:`pool_outputs` uses it under a
+    lock (another thread meanwhile gets a pool of its own)."""
+    global _shared
+    want = default_workers(threads) if workers is None else int(workers)
+    if _shared is not None and (
+        _shared.workers != want or _shared.threads != max(1, int(threads)) or not _shared._procs
+    ):
+        _drop_shared()
+    if _shared is None:
+        _shared = FramePool(want, threads)
+    return _shared
+
+
+def shared_pool_running(threads: int = 1) -> bool:
+    """True when this process's shared pool runs with ``threads`` threads per process (a
+    call on it pays no start)."""
+    return _shared is not None and bool(_shared._procs) and _shared.threads == max(1, threads)
+
+
+def _drop_shared() -> None:
+    global _shared
+    if _shared is not None:
+        _shared.close()
+        _shared = None
+
+
+def close_shared_pool() -> None:
+    """Stop this process's shared pool (a later call starts a new one)."""
+    with _shared_lock:
+        _drop_shared()
+
+
+atexit.register(close_shared_pool)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -545,14 +723,26 @@ def pool_outputs(
             a0, b0 = min(s[0] for s in spans), max(s[1] for s in spans)
             tasks.append((a0, b0, spans))
     need = max((b - a for a, b, _ in tasks), default=0) * layout.frame_bytes
-    own = pool is None
-    if own:
-        want = max(1, min(default_workers(threads) if workers is None else workers, len(tasks)))
-        pool = FramePool(want, threads, region_bytes=max(need, 1 << 20))
+    own = shared = False
+    if pool is None:
+        # this process's shared pool, unless another thread is using it right now
+        shared = _shared_lock.acquire(blocking=False)
+        if shared:
+            try:
+                pool = shared_pool(workers, threads)
+            except BaseException:
+                _shared_lock.release()
+                raise
+        else:
+            own = True
+            want = max(1, min(default_workers(threads) if workers is None else workers,
+                              len(tasks)))
+            pool = FramePool(want, threads, region_bytes=max(need, 1 << 20))
     assert pool is not None
-    if need > pool.region_bytes:
-        pool.grow(need)
+    finished = False
     try:
+        if need > pool.region_bytes:
+            pool.grow(need)
         done: dict[int, PoolResult] = {}
         nxt = 0  # next group to yield
         sub = 0  # next group to submit
@@ -568,6 +758,11 @@ def pool_outputs(
                 done[r.tag] = r
             yield from done.pop(nxt).outputs
             nxt += 1
+        finished = True
     finally:
         if own:
             pool.close()
+        elif shared:
+            if not finished:  # abandoned or failed half-way: tasks may still run there
+                _drop_shared()
+            _shared_lock.release()

@@ -5,8 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from cfsr._jit import njit
 from cfsr.spikes import SpikeRecording
 
 __all__ = ["RecordingStats", "recording_stats"]
@@ -15,7 +16,7 @@ __all__ = ["RecordingStats", "recording_stats"]
 _POP = np.array([bin(v).count("1") for v in range(256)], dtype=np.uint8)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _frame_counts(packed, pop, out):  # pragma: no cover - numba
     n, nb = packed.shape
     for t in prange(n):

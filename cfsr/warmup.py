@@ -20,14 +20,25 @@ skip it at its next start.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-__all__ = ["warm_up", "is_warm", "marker_path", "cache_dir", "WARM_ORDER"]
+__all__ = [
+    "warm_up",
+    "is_warm",
+    "marker_path",
+    "cache_dir",
+    "WARM_ORDER",
+    "KernelProgress",
+    "measured_compile",
+    "compile_profile",
+]
 
 #: Methods in the order a warm-up compiles them: the costliest compilations that users reach
 #: for first (CSR, CFSR), then the rest.
@@ -70,7 +81,7 @@ def _moving_spikes(n: int, h: int, w: int, vanish: int) -> np.ndarray:
 
 def _fingerprint() -> str:
     """Hash of what the compiled kernels depend on: the versions of cfsr and numba and the
-    size and modification time of every cfsr module (numba's own cache keys on the latter)."""
+    content of every cfsr module (a fresh clone or a reinstall of the same code keeps it)."""
     import numba
 
     import cfsr
@@ -78,9 +89,103 @@ def _fingerprint() -> str:
     root = Path(cfsr.__file__).parent
     h = hashlib.sha256(f"{cfsr.__version__} {numba.__version__}".encode())
     for p in sorted(root.rglob("*.py")):
-        st = p.stat()
-        h.update(f"{p.relative_to(root)} {st.st_size} {st.st_mtime_ns}\n".encode())
+        h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
     return h.hexdigest()[:16]
+
+
+def measured_compile() -> dict[str, Any]:
+    """The compile figures measured by ``cfsr bench`` on an empty cache and shipped with the
+    package (``_compile_table.json``): per method, ``kernels`` (the cfsr kernels it compiles
+    when nothing is cached, in order) and ``cpu_s`` (CPU seconds of that compile), with the
+    machine they were measured on. Empty when the table is absent."""
+    path = Path(__file__).with_name("_compile_table.json")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+def compile_profile(methods: Sequence[str] | None = None) -> dict[str, Any]:
+    """Warm ``methods`` up (:func:`warm_up`) and measure what numba spent compiling: per
+    method, the CPU seconds of the warm-up and the cfsr kernels it compiled (in order); per
+    kernel, its own CPU seconds (its compile without the callees that compile separately).
+    Run it on an empty cache (``NUMBA_CACHE_DIR`` set to a new folder), or it measures
+    cache loads. This is what ``cfsr bench --compile`` runs in each of its processes."""
+    from numba.core import event
+
+    from cfsr._jit import kernel_name
+
+    stack: list[list[Any]] = []
+    own: dict[str, float] = {}
+    order: list[str] = []
+
+    class Listener(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            stack.append([kernel_name(ev.data["dispatcher"].py_func), time.process_time(), 0.0])
+
+        def on_end(self, ev: event.Event) -> None:
+            name, t0, inner = stack.pop()
+            took = time.process_time() - t0
+            own[name] = own.get(name, 0.0) + took - inner
+            if name.startswith("cfsr."):
+                order.append(name)
+            if stack:
+                stack[-1][2] += took
+
+    listener = Listener()
+    event.register("numba:compile", listener)
+    per: dict[str, dict[str, Any]] = {}
+    mark = [time.process_time(), 0]
+
+    def done(name: str, seconds: float) -> None:
+        now = time.process_time()
+        per[name] = {"cpu_s": now - mark[0], "wall_s": seconds, "kernels": order[mark[1]:]}
+        mark[:] = [now, len(order)]
+
+    try:
+        warm_up(methods, progress=done)
+    finally:
+        event.unregister("numba:compile", listener)
+    return {"methods": per, "kernels": own, "cpu_s": sum(m["cpu_s"] for m in per.values())}
+
+
+class KernelProgress:
+    """Per-kernel progress of one method's compile, read from :func:`cfsr._jit.on_compile`
+    events: the kernel being compiled (or waited for, while another process compiles it),
+    ``n`` of ``N`` (``N`` from :func:`measured_compile`; kernels loaded from the cache count
+    too), the CPU seconds spent so far, and the measured CPU seconds of the whole method.
+
+    ``report(text, self)`` is called at each event with the line :meth:`line` gives."""
+
+    def __init__(
+        self, method: str, report: Callable[[str, KernelProgress], None] | None = None
+    ) -> None:
+        table = measured_compile().get("methods", {}).get(method, {})
+        self.method = method
+        self.total = len(table.get("kernels", [])) or None
+        self.estimate_s: float | None = table.get("cpu_s")
+        self.n = 0
+        self._report = report
+        self._t0 = time.process_time()
+
+    @property
+    def cpu_s(self) -> float:
+        """CPU seconds this process spent since the method's compile began."""
+        return time.process_time() - self._t0
+
+    def line(self, kernel: str | None, waiting: bool = False) -> str:
+        of = f"/{self.total}" if self.total else ""
+        est = f" of ~{self.estimate_s:.0f}" if self.estimate_s else ""
+        what = "" if kernel is None else (
+            f" {'waiting for' if waiting else 'compiling'} {kernel.rsplit('.', 1)[-1]}"
+        )
+        return f"{self.method}: kernel {self.n}{of}{what}, {self.cpu_s:.1f}{est} CPU s"
+
+    def __call__(self, event: str, act: Any) -> None:
+        if event in ("end", "load"):
+            self.n += 1
+        if self._report is not None:
+            self._report(self.line(act.kernel, act.waiting), self)
 
 
 def cache_dir() -> Path:
@@ -122,6 +227,7 @@ def warm_up(
     methods: Sequence[str] | None = None,
     *,
     progress: Callable[[str, float], None] | None = None,
+    kernels: Callable[[str, KernelProgress], None] | None = None,
 ) -> dict[str, float]:
     """Run each method once so numba compiles (or loads from its cache) every kernel it uses.
 
@@ -131,6 +237,9 @@ def warm_up(
         Method names (default: every registered method, in :data:`WARM_ORDER`).
     progress : callable, optional
         Called as ``progress(name, seconds)`` after each method.
+    kernels : callable, optional
+        Called as ``kernels(line, tracker)`` at each kernel compiled, loaded or waited for
+        (``line``: the :class:`KernelProgress` text; ``tracker``: its counts).
 
     Returns
     -------
@@ -154,8 +263,12 @@ def warm_up(
     h, w = _SHAPE
     layout = Layout(w, h)
     out: dict[str, float] = {}
+    from cfsr._jit import on_compile
+
     for name in names:
         t0 = time.perf_counter()
+        tracker = KernelProgress(name, kernels)
+        stop = on_compile(tracker)
         m = get_method(name)
         before, after = m.window(resolve_params(m))
         need = before + after + 1  # the frame computed is the one at `before`
@@ -164,7 +277,10 @@ def warm_up(
         sr.push(packed, 0)
         out_t = sr.latest_step()
         assert out_t is not None
-        rate = sr.compute(out_t).rate
+        try:
+            rate = sr.compute(out_t).rate
+        finally:
+            stop()
         if not np.isfinite(rate).all():  # a warm-up that computes garbage must not pass
             raise RuntimeError(f"warm-up of {name} gave non-finite rates")
         out[name] = time.perf_counter() - t0

@@ -5,7 +5,9 @@ by hand: rerun the benchmark, then this script).
     ./tasks bench --throughput --out docs/bench     # throughput.json
     ./tasks bench --sweep --out docs/bench          # sweep.json
     ./tasks bench --tiers --out docs/bench          # tiers.json
-    python scripts/results.py                       # docs/results.md, docs/bench/*.png
+    ./tasks bench --compile --out docs/bench        # compile.json
+    python scripts/results.py                       # docs/results.md, docs/bench/*.png,
+                                                    # cfsr/_compile_table.json
     python scripts/results.py --check               # exit 1 if docs/results.md is stale
 
 A JSON file that is absent leaves its section out; keys a file lacks leave their rows out.
@@ -25,6 +27,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "docs" / "bench"
 PAGE = ROOT / "docs" / "results.md"
+#: the measured compile table the progress bars estimate from (package data)
+TABLE = ROOT / "cfsr" / "_compile_table.json"
 #: the order of the tables: the paper's methods, then the baselines, then anything else
 ORDER = ("tfi", "tfp", "tfa", "tfstp", "snm", "csr", "cfsr")
 
@@ -304,6 +308,44 @@ def tiers_section(ti: dict[str, Any]) -> list[str]:
     return out
 
 
+def compile_section(co: dict[str, Any]) -> list[str]:
+    def cell(v: dict[str, float]) -> str:
+        return f"{v['median']:.1f} ({v['min']:.1f}-{v['max']:.1f})"
+
+    out = _table_head(
+        "## Compiling the kernels",
+        "CPU seconds numba spends on an empty cache (a fresh install), median of "
+        f"{co['runs']} run(s) with their range, each in a new process: every method together "
+        "(the warm-up's order; kernels shared by several methods count under the first), and "
+        "each method alone (its first use). Each kernel compiles once per machine: a process "
+        "that needs one another process is compiling waits for it and loads the result.",
+        ["method", "in the warm-up (CPU s)", "alone (CPU s)", "kernels"])
+    for m, row in co["alone"].items():
+        out.append(f"| {m} | {cell(co['in_all_cpu_s'][m])} | {cell(row['cpu_s'])} | "
+                   f"{len(row['kernels'])} |")
+    out.append(f"| **all** | {cell(co['all_cpu_s'])} | | |")
+    out += ["", "The costliest kernels (own CPU seconds, median):", "",
+            "| kernel | CPU s |", "|---|---|"]
+    for k, v in list(co["kernels_cpu_s"].items())[:8]:
+        out.append(f"| `{k}` | {v:.2f} |")
+    out += ["", "A frame after the compile, in the pool's one-thread mode (CPU ms, median of "
+            "the runs' medians; a 400 x 250 moving scene):", "",
+            "| method | CPU ms per frame |", "|---|---|"]
+    for m, f in co["frame_cpu_ms_one_thread"].items():
+        out.append(f"| {m} | {cell(f)} |")
+    out.append("")
+    return out
+
+
+def compile_table(co: dict[str, Any]) -> str:
+    """The package's measured table: per method, the kernels it compiles alone and their
+    CPU seconds (median), for the progress bars' 'n of N' and estimate."""
+    table = {"machine": co.get("machine", {}),
+             "methods": {m: {"cpu_s": round(row["cpu_s"]["median"], 2),
+                             "kernels": row["kernels"]} for m, row in co["alone"].items()}}
+    return json.dumps(table, indent=1, sort_keys=True) + "\n"
+
+
 def render(folder: Path = BENCH) -> str:
     acc, tp, sw = (_load(n, folder) for n in ("accuracy.json", "throughput.json", "sweep.json"))
     out = ["# Results", "",
@@ -327,6 +369,10 @@ def render(folder: Path = BENCH) -> str:
     if ti:
         out += tiers_section(ti)
         out += [f"Machine: {_machine(ti)}.", ""]
+    co = _load("compile.json", folder)
+    if co:
+        out += compile_section(co)
+        out += [f"Machine: {_machine(co)}.", ""]
     return "\n".join(out).rstrip() + "\n"
 
 
@@ -356,12 +402,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-plots", action="store_true", help="write the page only")
     args = ap.parse_args(argv)
     text = render()
+    co = _load("compile.json", BENCH)
+    table = compile_table(co) if co else None
     if args.check:
-        if PAGE.read_text() != text:
-            print(f"{PAGE} is stale: run python scripts/results.py", file=sys.stderr)
-            return 1
-        return 0
+        stale = [p for p, t in ((PAGE, text), (TABLE, table))
+                 if t is not None and (not p.exists() or p.read_text() != t)]
+        for p in stale:
+            print(f"{p} is stale: run python scripts/results.py", file=sys.stderr)
+        return 1 if stale else 0
     PAGE.write_text(text)
+    if table is not None:
+        TABLE.write_text(table)
     made = [] if args.no_plots else plots()
     print("\n".join([str(PAGE), *made]))
     return 0

@@ -48,6 +48,11 @@ class KernelStatus(BaseModel):
         None, description="the method being compiled now (the first pending one)"
     )
     elapsed_s: float | None = Field(None, description="seconds since the warm-up started")
+    kernel: str | None = Field(
+        None, description="the latest per-kernel progress line of the method compiling: its "
+        "kernel n of N, the kernel compiling (or waited for while another process compiles "
+        "it) and the CPU seconds so far against the measured ones"
+    )
     pid: int | None = Field(None, description="the warm-up process while it runs")
     error: str | None = None
 
@@ -115,7 +120,9 @@ class KernelWarmup:
             name = line.split(" ", 1)[0].strip()
             with self._lock:
                 st = self._status
-                if name in st.pending:
+                if line.startswith("# "):  # a kernel's progress
+                    st.kernel = line[2:].strip()[:300]
+                elif name in st.pending:
                     st.pending.remove(name)
                     st.ready.append(name)
                 elif line.strip():

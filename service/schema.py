@@ -111,8 +111,11 @@ class WorkerCounters:
                                  "replaced configuration or source (no spike data lost)", int)
     dropped_order: int = _counter("frames computed but not shown: a newer step was shown "
                                   "first (no spike data lost)", int)
-    fallback: int = _counter("1 while TFP frames stand in for a first frame that compiles", int)
-    fallback_frames: int = _counter("TFP frames shown that way", int)
+    fallback: int = _counter(
+        "the rung of the ladder standing in for a first frame that compiles (0 none, 1 TFP, "
+        "2 CSR)", int
+    )
+    fallback_frames: int = _counter("stand-in frames shown that way", int)
 
     @classmethod
     def from_record(cls, rec: np.void | np.ndarray) -> WorkerCounters:

@@ -225,6 +225,26 @@ class QualityShare(BaseModel):
     fast: int = Field(0, description="frames shown at the fast tier")
 
 
+class CompileProgress(BaseModel):
+    """The compile the chosen method's first frame waits on, as its pool process reports
+    it each second (its compile heartbeat)."""
+
+    method: str = Field(description="the method whose kernels compile")
+    kernel: str | None = Field(
+        None, description="the kernel compiling now (module.function), or waited for while "
+        "another process compiles it"
+    )
+    waiting: bool = Field(False, description="waiting for another process's compile of it")
+    kernels: int = Field(0, description="kernels compiled or loaded so far")
+    total: int | None = Field(
+        None, description="kernels the method compiles on an empty cache (measured table)"
+    )
+    cpu_s: float = Field(0.0, description="CPU seconds the process spent on it so far")
+    estimate_s: float | None = Field(
+        None, description="CPU seconds the whole method took to compile when measured"
+    )
+
+
 class WorkerStatus(BaseModel):
     alive: bool
     ready: bool
@@ -259,8 +279,12 @@ class WorkerStatus(BaseModel):
     )
     fallback_method: str | None = Field(
         None,
-        description="while the first frame under the config waits (on a first use: on the "
-        "compiler), the method whose frames are shown instead",
+        description="while the first frame under the config waits on the compiler, the "
+        "method whose frames are shown instead: TFP at once, then CSR (for CFSR) as soon as "
+        "its kernels are ready",
+    )
+    compiling: CompileProgress | None = Field(
+        None, description="the compile the first frame under the config waits on, if any"
     )
     fallback_frames: int = Field(0, description="frames of the fallback method shown so far")
 

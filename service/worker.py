@@ -39,6 +39,7 @@ from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
 from cfsr_live.service.schema import WorkerCounters
 from cfsr_live.service.status import (
+    CompileProgress,
     QualityShare,
     RateMeter,
     WorkerReport,
@@ -48,6 +49,7 @@ from cfsr_live.service.status import (
 
 __all__ = [
     "Attach",
+    "Compiling",
     "ConfigAck",
     "ConfigAnswer",
     "Configure",
@@ -129,6 +131,14 @@ class WorkerError:
         return cls(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}", fatal)
 
 
+@dataclass(frozen=True)
+class Compiling:
+    """What the first frame under the config waits on: ``progress`` (a
+    :class:`~cfsr_live.service.status.CompileProgress`), or None once no compile holds it."""
+
+    progress: CompileProgress | None
+
+
 class ConfigAck(NamedTuple):
     """:meth:`WorkerSupervisor.wait_config`'s answer (a tuple: ``state, reason = ...``)."""
 
@@ -143,7 +153,8 @@ class _Task(NamedTuple):
     """A frame handed to the pool: its step, when its newest spike arrived, the tier, the
     config version it was computed under, when and to which process it went, whether it
     is that process's first frame of its method and tier (which may wait on the compiler),
-    and the step clock its step counts on (:meth:`_Worker._restart_clock`)."""
+    the step clock its step counts on (:meth:`_Worker._restart_clock`), and whether it is a
+    rung of the ladder shown while the config's first frame compiles."""
 
     step: int
     arrival: float
@@ -154,18 +165,26 @@ class _Task(NamedTuple):
     method: str
     cold: bool
     clock: int
+    rung: bool = False  # a stand-in of the ladder (CSR while CFSR compiles), not the config's
 
 
-#: a frame whose newest spike arrived longer ago than this is not shown (counted late)
+#: the rung of the ladder shown while a method's first frame waits on its compile, computed
+#: by an idle pool process (TFP, the first rung, is computed by the worker itself)
+LADDER = {"cfsr": "csr"}
+#: the ``fallback`` counter's values: which rung stands in
+RUNG_CODES = {"tfp": 1, "csr": 2}
+_RUNG_NAMES = {v: k for k, v in RUNG_CODES.items()}
+
+
+#: a frame whose newest spike arrived longer ago than this is not shown (counted late) when a
+#: newer frame of its config is computing
 LATE_S = 1.0
 #: seconds the first frame under a config may be pending before the worker shows frames of a
 #: ready method (TFP) meanwhile: on a first use that frame waits on numba's compiler
 FALLBACK_AFTER_S = 1.0
-#: a pool task pending longer than this is taken for a hang; a process's first frame of a
-#: method and tier may wait on numba's compiler (most of a minute, more on a busy machine)
-#: and is allowed COLD_TASK_HANG_S
+#: a pool task pending longer than this, not counting the time its process spent compiling
+#: kernels (or waiting for another process's compile of them), is taken for a hang
 TASK_HANG_S = 120.0
-COLD_TASK_HANG_S = 900.0
 
 
 class _Worker:
@@ -175,8 +194,8 @@ class _Worker:
     The loop ingests ring blocks into the buffer, hands the newest computable step to an idle
     pool process whenever ``max_fps`` allows, and publishes finished frames in step order:
     a result older than one already shown is dropped (``dropped_order``), one whose spikes
-    arrived more than :data:`LATE_S` ago, or computed under a replaced config, too
-    (``dropped_late``). With ``workers`` processes several frames are computed at once, each
+    arrived more than :data:`LATE_S` ago while a newer frame of its config computes, or
+    computed under a replaced config, too (``dropped_late``). With ``workers`` processes several frames are computed at once, each
     on a different step, so the rate is up to ``workers`` times one process's.
 
     CFSR's ``quality = auto`` (the live default) picks a tier per frame: ``full`` while the
@@ -217,6 +236,7 @@ class _Worker:
         self.put("workers", self.pool.workers)
         self.put("threads", self.pool.threads)
         self._tasks: dict[int, _Task] = {}
+        self._compile_key: tuple[Any, ...] | None = None  # the compile last reported
         #: (process, method) pairs that returned a frame: their kernels are loaded
         self._warm: set[tuple[int, str]] = set()
         self._tag = 0
@@ -231,6 +251,7 @@ class _Worker:
         self._first_pending = True
         self._ready: dict[int, tuple[_Task, Any, float]] = {}  # results waiting for older ones
         self._fallback_next = 0.0
+        self._rung = 0  # the highest rung of the ladder shown for this config (RUNG_CODES)
         self._ema: dict[str, float] = {}
         self._credit = 0.0
         self.put("fallback", 0.0)
@@ -386,14 +407,31 @@ class _Worker:
         )
         return tier
 
+    def _compiling_first(self) -> tuple[_Task, Any] | None:
+        """The pending task of the config and its process's compile report, while the
+        config's first frame waits on a compile (or on another process's compile)."""
+        if not self._first_pending:
+            return None
+        for task in self._tasks.values():
+            if not task.rung and self._current(task):
+                beat = self.pool.compiling(task.process)
+                if beat is not None:
+                    return task, beat
+        return None
+
     def _submit(self) -> bool:
-        """Hand the newest computable step to an idle pool process, if the pace allows."""
+        """Hand the newest computable step to an idle pool process, if the pace allows;
+        while the config's first frame compiles, the next rung of the ladder instead."""
         rec = self.rec
         now = time.monotonic()
         if rec is None or now < self._next_out or not self.pool.idle:
             return False
         t = rec.latest_step()
-        if t is None or (self._last_submit is not None and t <= self._last_submit):
+        if t is None:
+            return False
+        if self._compiling_first() is not None:
+            return self._submit_rung(t, now)
+        if self._last_submit is not None and t <= self._last_submit:
             return False
         quality = self._quality()
         cfg = self._tiers[quality]
@@ -431,6 +469,32 @@ class _Worker:
         self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
         return True
 
+    def _submit_rung(self, t: int, now: float) -> bool:
+        """While the config's first frame compiles, an idle process computes the method's
+        rung of the ladder (CSR for CFSR: its kernels compile in seconds) at the newest step,
+        one at a time, so the picture climbs from TFP to CSR before CFSR arrives."""
+        rung = LADDER.get(self.config.method.method)
+        rec = self.rec
+        if rung is None or rec is None or any(k.rung for k in self._tasks.values()):
+            return False
+        if self._last_shown is not None and t <= self._last_shown:
+            return False
+        cfg = _rung_config(rung)
+        before, after = cfg.window
+        if t + after >= rec.next_step:
+            t = rec.next_step - after - 1
+        a, b = max(rec.first_step, t - before), min(rec.next_step, t + after + 1)
+        if t < a or (b - a) * rec.layout.frame_bytes > self.pool.region_bytes:
+            return False
+        self._tag += 1
+        k = self.pool.submit(self._tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)])
+        self._tasks[self._tag] = _Task(
+            t, self._arrival_of(t + after), "full", self.config.version, now, k, rung,
+            (k, rung) not in self._warm, self._clock, rung=True,
+        )
+        self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
+        return True
+
     def _collect(self) -> bool:
         """Publish the results that are in, in step order; True when one was shown.
 
@@ -453,7 +517,10 @@ class _Worker:
             (t, out), ms = r.outputs[0], r.compute_ms[0]
             if task.cold:  # its time holds the kernels' loading or compiling: not a frame's
                 self._warm.add((task.process, task.method))
-            elif ms > 0:
+            if task.rung:
+                self._show_rung(task, t, out, ms)
+                continue
+            if not task.cold and ms > 0:
                 old = self._ema.get(task.quality)
                 self._ema[task.quality] = ms if old is None else 0.8 * old + 0.2 * ms
             if not self._current(task):
@@ -464,12 +531,25 @@ class _Worker:
         self._check_hangs()
         return shown
 
+    def _show_rung(self, task: _Task, t: int, out: Any, ms: float) -> None:
+        """Show a rung's frame while the config's first frame still waits (and it is newer
+        than what is shown); the ladder only climbs, so TFP stops once CSR is shown."""
+        if not (self._first_pending and self._current(task)):
+            return
+        if self._last_shown is not None and t <= self._last_shown:
+            return
+        self._rung = max(self._rung, RUNG_CODES[task.method])
+        self.put("fallback", float(self._rung))
+        self._publish(t, out, task.method, task.arrival, ms, timed=False)
+        self.bump("fallback_frames")
+
     def _flush(self) -> bool:
         """Show the waiting results that no older task of their config precedes."""
         shown = False
         while self._ready:
             t = min(self._ready)
-            if any(self._current(k) and k.step < t for k in self._tasks.values()):
+            if any(self._current(k) and not k.rung and k.step < t
+                   for k in self._tasks.values()):
                 break
             task, out, ms = self._ready.pop(t)
             first, self._first_pending = self._first_pending, False
@@ -483,7 +563,14 @@ class _Worker:
             if not first and self._last_shown is not None and t <= self._last_shown:
                 self.bump("dropped_order")
                 continue
-            if not first and time.monotonic() - task.arrival > LATE_S:
+            # late only when something newer of this config is on its way to replace it: the
+            # newest frame there is is shown however old (dropping it leaves an older one up)
+            if (
+                not first
+                and time.monotonic() - task.arrival > LATE_S
+                and any(self._current(k) and not k.rung and k.step > t
+                        for k in self._tasks.values())
+            ):
                 self.bump("dropped_late")
                 continue
             self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms,
@@ -493,28 +580,38 @@ class _Worker:
         return shown
 
     def _check_hangs(self) -> None:
-        """A task pending past its limit is a hung process: PoolError, so the worker exits
-        and the supervisor restarts it with a fresh pool."""
+        """A task pending past :data:`TASK_HANG_S` while its process neither compiles nor
+        waits for a compile is a hung process: PoolError, so the worker exits and the
+        supervisor restarts it with a fresh pool. Time spent compiling is not counted (the
+        process's compile heartbeat, :meth:`FramePool.compiling`): a compile of minutes on a
+        busy machine is never killed, and a frame stuck anywhere else still is."""
         from cfsr.pool import PoolError
 
         now = time.monotonic()
         for task in self._tasks.values():
-            limit = COLD_TASK_HANG_S if task.cold else TASK_HANG_S
-            if now - task.submitted > limit:
+            if self.pool.compiling(task.process) is not None:
+                continue
+            since = max(task.submitted, self.pool.compile_ended(task.process))
+            if now - since > TASK_HANG_S:
                 raise PoolError(
                     f"pool process {task.process} has computed step {task.step} for "
-                    f"{now - task.submitted:.0f} s: taken for a hang"
+                    f"{now - task.submitted:.0f} s ({now - since:.0f} s since it last "
+                    "compiled): taken for a hang"
                 )
 
     def _fallback(self) -> bool:
-        """While the first frame under the config waits (on a first use: on numba's
-        compiler), show TFP frames, computed here, so the image does not freeze."""
+        """While the first frame under the config waits on numba's compiler (its process's
+        compile heartbeat says so), show TFP frames, computed here, so the image does not
+        freeze: the ladder's first rung, until a higher one (CSR) is shown. A first frame
+        that is merely slow (no compile) keeps the last frame of the chosen method."""
         rec = self.rec
         if (
             rec is None
             or not self._first_pending
             or self._first_since is None
             or self.config.method.method == "tfp"
+            or self._rung > RUNG_CODES["tfp"]
+            or self._compiling_first() is None
         ):
             return False
         now = time.monotonic()
@@ -526,7 +623,7 @@ class _Worker:
         from cfsr.methods.registry import get_method
 
         tfp = get_method("tfp")
-        fb = _fallback_config()
+        fb = _rung_config("tfp")
         before, after = fb.window
         t0 = time.perf_counter()
         out = tfp.run_window(
@@ -534,8 +631,9 @@ class _Worker:
             fb.params,
         )
         ms = (time.perf_counter() - t0) * 1e3
-        self.put("fallback", 1.0)
-        self._publish(t, out, "tfp", self._arrival_of(t), ms)
+        self._rung = max(self._rung, RUNG_CODES["tfp"])
+        self.put("fallback", float(self._rung))
+        self._publish(t, out, "tfp", self._arrival_of(t), ms, timed=False)
         self.bump("fallback_frames")
         self._fallback_next = now + 1.0 / self.config.max_fps
         return True
@@ -571,12 +669,34 @@ class _Worker:
             old = self.st[name]
             self.st[name] = v if old == 0 else (1 - a) * old + a * v
 
+    def _report_compile(self) -> None:
+        """Tell the supervisor what the config's first frame waits on (each change of
+        kernel, count or whole CPU second, and once when no compile holds it any more)."""
+        from cfsr.warmup import measured_compile
+
+        got = self._compiling_first()
+        key = None if got is None else (got[1].kernel, got[1].kernels, int(got[1].cpu_s))
+        if key == self._compile_key:
+            return
+        self._compile_key = key
+        progress = None
+        if got is not None:
+            task, beat = got
+            table = measured_compile().get("methods", {}).get(task.method, {})
+            progress = CompileProgress(
+                method=task.method, kernel=beat.kernel, waiting=beat.waiting,
+                kernels=beat.kernels, total=len(table.get("kernels", [])) or None,
+                cpu_s=beat.cpu_s, estimate_s=table.get("cpu_s"),
+            )
+        self.evt_q.put(Compiling(progress))
+
     def maybe_output(self) -> bool:
         """One round of output: collect and publish, submit the next step, or show a
         fallback frame while the first one waits; True when something happened."""
         shown = self._collect()
         submitted = self._submit()
         fell_back = self._fallback()
+        self._report_compile()
         return shown or submitted or fell_back
 
 
@@ -620,12 +740,12 @@ def _tiers(cfg: WorkerConfig) -> dict[str, Any]:
 
 
 @functools.cache
-def _fallback_config() -> Any:
-    """The method shown while the first frame under a config compiles: TFP (cheap, and the
-    first a warm-up compiles)."""
+def _rung_config(method: str) -> Any:
+    """A rung of the ladder at its default parameters (TFP, the first: cheap, and the
+    first a warm-up compiles; CSR for CFSR)."""
     from cfsr.config import MethodConfig
 
-    return MethodConfig("tfp")
+    return MethodConfig(method)
 
 
 def _auto_gain(rate) -> float:
@@ -655,7 +775,7 @@ def worker_main(
     # signal; it kills us (SIGKILL) when a stop does not end us.
     ignore_stop_signals()
     keep_freed_memory()  # frames reuse the last frame's large arrays (no page faults)
-    from cfsr.pool import PoolError, TaskError
+    from cfsr.pool import PoolError, TaskError, start_compile_beat
 
     # We are a daemon of the web process (ended with it), and multiprocessing forbids a
     # daemon children of its own; our pool's processes are daemons of ours and also leave by
@@ -668,6 +788,11 @@ def worker_main(
     w: _Worker | None = None
     try:
         w = _Worker(slot_path, config, evt_q, workers, threads)
+        # a kernel this process compiles itself (the fallback's TFP, a first CSR rung) holds
+        # the loop; the beat keeps the heartbeat fresh meanwhile, so the supervisor never
+        # takes a compile for a hang
+        beat_w = w
+        start_compile_beat(lambda act: beat_w.put("heartbeat", time.monotonic()))
         w.attach(ring_path, layout)
         evt_q.put(Ready(os.getpid()))
         consecutive_errors = 0
@@ -743,10 +868,8 @@ class WorkerSupervisor:
         :meth:`configure`.
     hang_timeout : float
         Seconds without a heartbeat after which the worker is considered hung and restarted.
-    compile_timeout : float
-        The same while the first frame under a configuration is computing: on a machine's
-        first use that frame waits on numba's compiler for most of a minute (more on a slow
-        machine), and a restart would only start the compilation over.
+        A compile in the worker itself does not count: its compile heartbeat keeps the
+        heartbeat fresh meanwhile (:func:`cfsr.pool.start_compile_beat`).
     """
 
     def __init__(
@@ -755,7 +878,6 @@ class WorkerSupervisor:
         config: WorkerConfig,
         *,
         hang_timeout: float = 120.0,
-        compile_timeout: float = 900.0,
         workers: int = 1,
         threads: int = 1,
     ) -> None:
@@ -768,7 +890,8 @@ class WorkerSupervisor:
         #: rejection): what a restarted worker starts with
         self.config = config
         self.hang_timeout = hang_timeout
-        self.compile_timeout = compile_timeout
+        #: what the first frame under the config waits on, as the worker last reported
+        self.compiling: CompileProgress | None = None
         self._ctx = mp.get_context("spawn")
         self._proc: mp.process.BaseProcess | None = None
         self._cmd_q = None
@@ -967,6 +1090,8 @@ class WorkerSupervisor:
             elif isinstance(ev, WorkerError):
                 self.errors.append({"time": time.time(), "message": ev.message[:4000]})
                 log.warning("worker error: %s", ev.message.splitlines()[0])
+            elif isinstance(ev, Compiling):
+                self.compiling = ev.progress
 
     def _monitor(self) -> None:
         backoff = 0.5
@@ -979,13 +1104,11 @@ class WorkerSupervisor:
                 alive = proc.is_alive()
                 st = self.slot.stats()
                 hb = st.heartbeat
-                compiling = st.first_frame_since > 0
-                limit = self.compile_timeout if compiling else self.hang_timeout
                 hung = (
                     alive
                     and self.ready.is_set()
                     and hb > 0
-                    and time.monotonic() - hb > limit
+                    and time.monotonic() - hb > self.hang_timeout
                 )
                 if alive and not hung:
                     if time.monotonic() - self._started_at > 30:
@@ -1082,7 +1205,8 @@ class WorkerSupervisor:
                     full=st.q_full,
                     fast=st.q_fast,
                 ),
-                fallback_method="tfp" if st.fallback and first else None,
+                fallback_method=_RUNG_NAMES.get(int(st.fallback)) if first else None,
+                compiling=self.compiling if first else None,
             ),
             latency_ms=st.latency_ms,
             compute_ms=st.compute_ms,

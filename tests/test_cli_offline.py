@@ -167,33 +167,30 @@ def test_reconstruct_masks_written_beside_frames(dat, tmp_path):
     assert np.asarray(Image.open(out / "t450_mask_coarse.png")).max() in (0, 255)
 
 
-def test_first_frame_notice_says_numba_is_compiling():
-    """A first frame slower than the notice's delay gets one line saying why (numba compiles
-    on a machine's first use); a frame that came out in time gets none."""
-    import threading
+def test_a_first_reconstruct_shows_its_compile_kernel_by_kernel(capsys):
+    """Before a method's first frame, its kernels are compiled (or loaded from the cache) in
+    the caller's process with one progress line per kernel: the method, the kernel's rank
+    and the CPU seconds, never a frame counter standing still for minutes."""
+    import re
+    import subprocess
+    import sys
 
-    from cfsr.cli._common import first_frame_notice
+    from cfsr.cli._common import compile_first
 
-    class Bar:
-        def __init__(self, n):
-            self.n = n
-            self.lines = []
-            self.wrote = threading.Event()
-
-        def write(self, text, file=None):
-            self.lines.append(text)
-            self.wrote.set()
-
-    slow = Bar(0)
-    with first_frame_notice(slow, "cfsr", after=0.01):
-        assert slow.wrote.wait(10)  # the body outlives the delay: the notice fires
-    assert len(slow.lines) == 1 and "numba compiles" in slow.lines[0]
-    fast = Bar(1)  # a frame already came out when the timer fires
-    with first_frame_notice(fast, "cfsr", after=0.01):
-        assert not fast.wrote.wait(0.2)  # bounded wait for something that must not happen
-    quiet = Bar(0)
-    with first_frame_notice(quiet, "cfsr", after=0.01, enabled=False):
-        assert not quiet.wrote.wait(0.2)
+    # a new process: this one may hold TFI's kernels already (then nothing loads)
+    code = ("from cfsr.warmup import warm_up; "
+            "warm_up(['tfi'], kernels=lambda line, tracker: print(line, flush=True))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines, "no kernel was compiled or loaded"
+    assert all(re.match(r"tfi: kernel \d+(/\d+)?( (compiling|waiting for) \S+)?, "
+                        r"[\d.]+( of ~\d+)? CPU s$", ln) for ln in lines), lines
+    counts = [int(re.match(r"tfi: kernel (\d+)", ln).group(1)) for ln in lines]
+    assert counts == sorted(counts) and counts[-1] >= 1
+    compile_first("tfi", quiet=True)  # quiet: nothing on stderr
+    assert capsys.readouterr().err == ""
 
 
 def test_npz_array_chosen_with_key(dat, tmp_path, capsys):

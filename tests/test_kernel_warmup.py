@@ -1,5 +1,6 @@
 """Kernel warm-up: ``cfsr warmup`` and the background compilation of a first ``cfsr serve``
-(issue 14 item 6: a fresh install's first CSR/CFSR frame should not wait on the compiler)."""
+(a fresh install's first CSR/CFSR frame should not wait on the compiler), with progress kernel
+by kernel."""
 
 from __future__ import annotations
 
@@ -50,12 +51,27 @@ def test_marker_follows_the_code(monkeypatch):
     assert warmup._fingerprint() != a  # another version (or changed sources): not warm
 
 
-def test_cli_lines_and_errors():
-    r = _cli("--lines", "--methods", "tfp,tfi")
+def test_cli_lines_and_errors(tmp_path):
+    """``--lines`` on an empty cache: each method's kernels, one '# ' line per kernel
+    compiled (its method, rank and CPU seconds), then 'NAME SECONDS' when the method is
+    ready; a wrong name is one line and exit 2."""
+    import re
+
+    r = _cli("--lines", "--methods", "tfp,tfi", env={"NUMBA_CACHE_DIR": str(tmp_path)})
     assert r.returncode == 0, r.stderr
-    names = [ln.split()[0] for ln in r.stdout.splitlines()]
-    assert names == ["tfp", "tfi"]
-    assert all(float(ln.split()[1]) >= 0 for ln in r.stdout.splitlines())
+    lines = r.stdout.splitlines()
+    done = [ln.split() for ln in lines if not ln.startswith("# ")]
+    assert [d[0] for d in done] == ["tfp", "tfi"]
+    assert all(re.fullmatch(r"\d+\.\d{3}", d[1]) for d in done), done
+    # kernel lines come before their method's line, name it, and count up from 1
+    for name in ("tfp", "tfi"):
+        end = lines.index(next(ln for ln in lines if ln.startswith(f"{name} ")))
+        start = max((i + 1 for i, ln in enumerate(lines[:end]) if not ln.startswith("# ")),
+                    default=0)
+        ks = [re.match(rf"# {name}: kernel (\d+)", ln) for ln in lines[start:end]]
+        assert ks and all(ks), lines[start:end]
+        counts = [int(k.group(1)) for k in ks]
+        assert counts == sorted(counts) and counts[-1] >= 1, counts
     bad = _cli("--methods", "nope")
     assert bad.returncode == 2 and "unknown method 'nope'" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1
@@ -155,14 +171,13 @@ def test_if_needed_does_nothing_once_this_code_was_warmed(tmp_path):
     complete warm-up of this code left its marker in numba's cache folder."""
     env = {"NUMBA_CACHE_DIR": str(tmp_path)}
     (tmp_path / f"cfsr-warm-{warmup._fingerprint()}").write_text("tfi=0.1\n")
-    t0 = time.monotonic()
     r = _cli("--if-needed", "--lines", env=env)
     assert r.returncode == 0 and r.stdout == "", (r.stdout, r.stderr)
-    assert time.monotonic() - t0 < 60  # nothing compiled (a real warm-up takes minutes)
-    assert not any(p.suffix == ".nbi" for p in tmp_path.rglob("*"))
+    assert not any(p.suffix == ".nbi" for p in tmp_path.rglob("*"))  # nothing compiled
     # named methods are an explicit request: they run whatever the marker says
     r = _cli("--if-needed", "--lines", "--methods", "tfi", env=env)
-    assert r.returncode == 0 and r.stdout.split()[0] == "tfi", r.stderr
+    done = [ln for ln in r.stdout.splitlines() if not ln.startswith("# ")]
+    assert r.returncode == 0 and [ln.split()[0] for ln in done] == ["tfi"], r.stderr
 
 
 def test_cache_dir_is_where_numba_writes_the_kernels(tmp_path):

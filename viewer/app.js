@@ -778,24 +778,32 @@
     const share = n ? Math.round(100 * full / n) + " % full, " + Math.round(100 * fast / n) + " % fast" : "no frames yet";
     return (q.mode || "-") + (q.mode === "auto" || n ? " (" + share + ")" : "");
   }
-  // while a method compiles the service may show a ready one: say so, with the progress
+  // while a method compiles the service shows the ladder (TFP, then CSR for CFSR): say which
+  // rung is shown and what the chosen method's first frame waits on, kernel by kernel
+  function kernelText(c) {
+    const of = c.total ? "/" + c.total : "";
+    const est = c.estimate_s ? " of ~" + Math.round(c.estimate_s) : "";
+    const name = c.kernel ? c.kernel.split(".").pop() : "";
+    const what = name ? (c.waiting ? ", waiting for " : ", ") + name : "";
+    return "kernel " + c.kernels + of + what + ", " + Math.round(c.cpu_s) + est + " CPU s";
+  }
   function compileNote(s) {
-    const w = s.worker, k = s.kernels;
-    const progress = k && k.state === "compiling"
-      ? (k.ready.length + "/" + (k.ready.length + k.pending.length) + " methods compiled, " + Math.round(k.elapsed_s || 0) + " s")
-      : (w.first_frame_s > 3 ? Math.round(w.first_frame_s) + " s" : "");
+    const w = s.worker, k = s.kernels, c = w.compiling;
     // the status may lag the frames by a poll: once frames of the chosen method arrive,
     // nothing is shown in its place any more
     const arrived = latest && latest.method === s.method;
-    if (w.fallback_method && !arrived) {
-      const target = w.compiling || s.method;
-      return "showing " + w.fallback_method.toUpperCase() + " while " + target.toUpperCase() + " compiles"
-        + (progress ? " (" + progress + ")" : "");
+    if (arrived) return k && k.state === "failed" ? "kernel warm-up failed: " + k.error : "";
+    const progress = c ? kernelText(c) : "";
+    const target = (c && c.method) || s.method;
+    if (w.fallback_method) {
+      return "showing " + w.fallback_method.toUpperCase() + " while " + target.toUpperCase()
+        + " compiles" + (progress ? " (" + progress + ")" : "");
     }
-    if (w.compiling && !arrived) return "compiling " + w.compiling.toUpperCase() + (progress ? " (" + progress + ")" : "");
-    if (w.first_frame_s > 3 && !arrived) return "first " + s.method + " frame for " + Math.round(w.first_frame_s)
-      + " s: the reconstruction kernels compile on first use on this machine (once, then cached)";
-    if (k && k.state === "compiling") return "compiling kernels in the background (" + progress + (k.pending.length ? ", now " + k.pending[0] : "") + ")";
+    if (c) return "compiling " + target.toUpperCase() + " (" + progress + ")";
+    if (k && k.state === "compiling") {
+      return "compiling kernels in the background (" + k.ready.length + "/"
+        + (k.ready.length + k.pending.length) + " methods" + (k.kernel ? "; " + k.kernel : "") + ")";
+    }
     if (k && k.state === "failed") return "kernel warm-up failed: " + k.error;
     return "";
   }

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from contextlib import contextmanager
 from typing import Any
 
 
@@ -190,31 +189,24 @@ def jit_cache_location() -> str:
     return str(cache_dir())
 
 
-@contextmanager
-def first_frame_notice(bar, what: str, *, after: float = 3.0, enabled: bool = True):
-    """While the body runs, say once (on stderr, through ``bar``) that numba is compiling when
-    the first frame has not come out ``after`` seconds in: on a machine's first use the
-    kernels of CSR and CFSR compile for most of a minute, which would otherwise look like a
-    hang. ``bar`` is the tqdm bar whose count says whether a frame came out."""
-    import threading
+def compile_first(method: str, *, quiet: bool = False) -> None:
+    """Compile (or load from the cache) ``method``'s kernels in this process before the
+    first frame, with a progress bar per kernel (name, n of N, CPU seconds against the
+    measured ones) on stderr: on a machine's first use the wait is the compiler's, and says
+    so, instead of a frame counter standing still. A cached method loads in about a second
+    and shows nothing. Processes started afterwards (the pool) load what this one compiled."""
+    from tqdm import tqdm
 
-    done = threading.Event()
+    from cfsr.warmup import KernelProgress, measured_compile, warm_up
 
-    def fire() -> None:
-        if not done.is_set() and bar.n == 0:
-            bar.write(
-                f"{what}: the first frame is still running after {after:g} s: numba compiles "
-                f"the kernels on first use on this machine (cached in {jit_cache_location()}); "
-                "later runs start at once ('cfsr warmup' compiles every method ahead)",
-                file=sys.stderr,
-            )
+    table = measured_compile().get("methods", {}).get(method, {})
+    bar = tqdm(total=len(table.get("kernels", [])) or None, unit="kernel",
+               disable=quiet or None, file=sys.stderr, mininterval=0.5, delay=1.0,
+               desc=f"compiling {method}")
 
-    timer = threading.Timer(after, fire)
-    timer.daemon = True
-    if enabled:
-        timer.start()
-    try:
-        yield
-    finally:
-        done.set()
-        timer.cancel()
+    def kernel(line: str, tracker: KernelProgress) -> None:
+        bar.set_description_str(f"compiling {line}", refresh=False)
+        bar.update(max(0, tracker.n - bar.n))
+
+    with bar:
+        warm_up([method], kernels=kernel)

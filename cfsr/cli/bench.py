@@ -58,6 +58,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "against the same frames isolated: PSNR and CPU cost per frame, per scene",
     )
     p.add_argument(
+        "--compile",
+        action="store_true",
+        help="what compiling the kernels costs on an empty cache (CPU s: every method, each "
+        "alone, per kernel; 3 runs, 1 with --quick) and the frame cost after it in the "
+        "pool's one-thread mode",
+    )
+    p.add_argument(
         "--methods", help="override the grid: comma-separated specs, e.g. tfi,tfp:window=32,cfsr"
     )
     p.add_argument("--scenes", help="simulated scenes (default: all; quick: disk,car)")
@@ -523,6 +530,11 @@ def run(args: argparse.Namespace) -> int:
         if args.throughput:
             res = _throughput(args, bar)
             name = "throughput.json"
+        elif args.compile:
+            from cfsr.cli._compile import compile_bench
+
+            res = compile_bench(args, bar)
+            name = "compile.json"
         elif args.tiers or args.dense:
             from cfsr.cli._sweep import tiers
 
@@ -543,6 +555,10 @@ def run(args: argparse.Namespace) -> int:
         _write_json(args.json, res)
     if args.throughput:
         _print_throughput(res)
+    elif args.compile:
+        from cfsr.cli._compile import print_compile
+
+        print_compile(res)
     elif args.tiers or args.dense:
         from cfsr.cli._sweep import print_tiers
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from cfsr.cli._common import (
     add_input_arguments,
     add_pool_arguments,
-    first_frame_notice,
+    compile_first,
     open_input,
     parse_params,
     parse_times,
@@ -163,7 +163,9 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
         mininterval=0.5,
     )
-    with bar, first_frame_notice(bar, m.name, enabled=not args.quiet):
+    if tasks:
+        compile_first(m.name, quiet=args.quiet)
+    with bar:
         results = run_batch(tasks, cluster=args.cluster, progress=bar.update)
     n = sum(r["frames"] for r in results)
     if args.masks and not m.masks:
@@ -192,6 +194,7 @@ def _video(args: argparse.Namespace, rec, method: str, times: list[int], params:
     if not writer.isOpened():
         raise OSError(f"{args.video}: cannot open a video writer (mp4v)")
     gain = args.gain if args.gain is not None else rec.gain
+    compile_first(method, quiet=args.quiet)
     try:
         with tqdm(
             total=len(set(times)),
@@ -200,7 +203,7 @@ def _video(args: argparse.Namespace, rec, method: str, times: list[int], params:
             disable=args.quiet or None,
             file=sys.stderr,
             mininterval=0.5,
-        ) as bar, first_frame_notice(bar, method, enabled=not args.quiet):
+        ) as bar:
             for _, out in stream_reconstruct(
                 rec,
                 method,

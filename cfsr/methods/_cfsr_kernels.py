@@ -11,9 +11,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from cfsr._isi import search_range
+from cfsr._jit import njit
 from cfsr._words import (
     ROW_PAD,
     count_between,
@@ -50,7 +51,7 @@ from cfsr.methods.tfp import span_rate
 #   PatchMatch steps.
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no cover - numba
     """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
     ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``."""
@@ -125,7 +126,7 @@ class Daisi(NamedTuple):
     logs: np.ndarray  #: float64: :func:`cfsr.methods.daisi.log_table`
 
 
-@njit(parallel=True, cache=True)
+@njit
 def static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
     # pragma: no cover - numba
     """First pass of the history scan: what a static window needs, nothing more.
@@ -158,7 +159,7 @@ def static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
     for j in range(n_win):
         lens[j] = max(1, bounds[ib[j]] - bounds[ia[j]])
     nw = n_words(lo, hi)
-    for y in prange(h):
+    for y in range(h):
         words = store[y]
         big = long_isi_buffer(lo, hi)
         loc = np.empty(2 * dspan + 8, np.int64)
@@ -202,7 +203,7 @@ def static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
                 tfp[j, y, x] = tfp[j0, y, x]
 
 
-@njit(parallel=True, cache=True)
+@njit(hot=True)
 def dynamic_kernel(src, wins, kept, ub, counts, isi, active):  # pragma: no cover - numba
     """Second pass, run only when some pixel was not proven static: the TFI interval at
     every history step (the ATSR scale of Eq. 7 needs it on the static region too) and,
@@ -244,7 +245,7 @@ def dynamic_kernel(src, wins, kept, ub, counts, isi, active):  # pragma: no cove
 
 
 
-@njit(parallel=True, cache=True)
+@njit
 def crop_counts(packed, geo, lo, hi, starts, length, y0, x0, xa, xb, out):
     # pragma: no cover - numba
     """``out[k, i, x - x0]``: spikes of image pixel ``(y0 + i, x)``, ``xa[i] <= x <
@@ -254,7 +255,7 @@ def crop_counts(packed, geo, lo, hi, starts, length, y0, x0, xa, xb, out):
     popcounts (:func:`cfsr._words.count_between`). Other entries are left as they are."""
     k_count, hh, ww = out.shape
     nw = (hi - lo + 63) >> 6
-    for i in prange(hh):
+    for i in range(hh):
         a_x = xa[i]
         b_x = xb[i]
         if a_x >= b_x:

@@ -8,12 +8,13 @@ row's time slab is copied once (contiguous x) and each pixel's times are collect
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from cfsr._jit import njit
 
 __all__ = ["row_slab", "row_gather", "pixel_times", "candidate_run"]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def row_slab(spikes, lo, length, y):  # pragma: no cover - numba
     """Frames ``lo .. lo+length-1`` of row ``y`` as a ``(length, W)`` uint8 copy."""
     w = spikes.shape[2]
@@ -24,7 +25,7 @@ def row_slab(spikes, lo, length, y):  # pragma: no cover - numba
     return slab
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def row_gather(spikes, lo, length, y):  # pragma: no cover - numba
     """:func:`row_slab` of row ``y`` and a buffer for one pixel's spike times in it
     (``length + 1`` int64, filled by :func:`pixel_times`): what a row of a per-pixel walk
@@ -32,7 +33,7 @@ def row_gather(spikes, lo, length, y):  # pragma: no cover - numba
     return row_slab(spikes, lo, length, y), np.empty(length + 1, np.int64)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def pixel_times(slab, x, lo, times):  # pragma: no cover - numba
     """Write the absolute steps of column ``x``'s spikes into ``times``; return how many."""
     ns = 0
@@ -43,7 +44,7 @@ def pixel_times(slab, x, lo, times):  # pragma: no cover - numba
     return ns
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def candidate_run(cand, i):  # pragma: no cover - numba
     """``(a, b)``: row ``i`` of the bool mask ``cand`` from its first candidate column ``a``
     to one past its last ``b``; ``(-1, -1)`` for a row without one (the span a kernel that

@@ -20,12 +20,13 @@ the fused rate to ``[0, 1]`` spikes per step.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+
+from cfsr._jit import njit
 
 __all__ = ["atsr_alpha", "atsr_fuse", "atsr_fuse_isi"]
 
 
-@njit(cache=True)
+@njit
 def _static_sums(tfi, tfp, static):  # pragma: no cover - numba
     """Sums of ``tfi`` and ``tfp`` over the ``static`` pixels, in float64 (flat arrays)."""
     num = 0.0
@@ -37,10 +38,10 @@ def _static_sums(tfi, tfp, static):  # pragma: no cover - numba
     return num, den
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _paste_kernel(dynamic, tfp, mask, alpha, out):  # pragma: no cover - numba
     """``mask ? dynamic : alpha * tfp``, NaN -> 0, clipped to [0, 1] (flat arrays)."""
-    for i in prange(out.size):
+    for i in range(out.size):
         v = dynamic[i] if mask[i] else alpha * tfp[i]
         out[i] = 0.0 if np.isnan(v) else min(max(v, 0.0), 1.0)
     return out
@@ -111,14 +112,14 @@ def atsr_fuse(
     return out, alpha
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _fuse_isi_kernel(isi, tfp, mask, counted, alpha_max, out):  # pragma: no cover - numba
     """:func:`atsr_fuse` of each frame ``j`` (flat rows), the dynamic rate being TFI
     ``float32(1 / isi)``; the same sums (float64, pixel order), scale and paste. The sums of
     the frames before the last take only the static pixels where ``counted`` (flat bool;
     empty: all)."""
     last = isi.shape[0] - 1
-    for j in prange(isi.shape[0]):
+    for j in range(isi.shape[0]):
         every = counted.shape[0] == 0 or j == last
         n = isi.shape[1]
         dynamic = False

@@ -26,14 +26,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
 
+from cfsr._jit import njit
 from cfsr.methods._spiketimes import pixel_times, row_slab
 
 __all__ = ["daisi_strength", "daisi_edges", "daisi_from_times", "log_table"]
 
 
-@njit(cache=True)
+@njit
 def log_table(n):  # pragma: no cover - numba
     """``logs[d] = log(d)`` for ISIs ``d = 1 .. n`` steps (``logs[0] = 0``): per-pixel DAISI
     then costs table reads, not logarithms, with the very same values."""
@@ -43,7 +43,7 @@ def log_table(n):  # pragma: no cover - numba
     return logs
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def daisi_from_times(tv, a_lo, a_hi, logs):  # pragma: no cover - numba
     """Largest adjacent-ISI log ratio D (Eq. 10-13) for steps in ``[a_lo, a_hi]``.
 
@@ -80,13 +80,13 @@ def daisi_from_times(tv, a_lo, a_hi, logs):  # pragma: no cover - numba
     return best
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _daisi_kernel(spikes, c, span, lo, hi, logs, out):  # pragma: no cover - numba
     n, h, w = spikes.shape
     length = hi - lo
     a_lo = c - span
     a_hi = c + span
-    for y in prange(h):
+    for y in range(h):
         slab = row_slab(spikes, lo, length, y)
         times = np.empty(length + 1, np.int64)
         for x in range(w):

@@ -15,8 +15,8 @@ Counting *all* ISIs instead would call every bright static pixel dynamic.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
 
+from cfsr._jit import njit
 from cfsr._words import (
     ROW_PAD,
     WORD_STEPS,
@@ -38,7 +38,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def sliding_distinct(times, ns, ends, span, hist, out, y, x):  # pragma: no cover - numba
     """Eq. 5 for one pixel at every step of ``ends`` (ascending): ``out[k, y, x]`` = distinct
     ISI values whose two spikes lie in ``(ends[k] - span, ends[k]]``.
@@ -79,7 +79,7 @@ def sliding_distinct(times, ns, ends, span, hist, out, y, x):  # pragma: no cove
         a += 1
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
     """:func:`sliding_distinct` for every pixel of unpacked frames, for sorted ``ends``."""
     n, h, w = spikes.shape
@@ -87,7 +87,7 @@ def _distinct_kernel(spikes, ends, span, out):  # pragma: no cover - numba
     lo = max(0, ends[0] - span + 1)
     hi = min(n, ends[k_count - 1] + 1)
     length = max(0, hi - lo)
-    for y in prange(h):
+    for y in range(h):
         # copy the row's time slab once: the per-pixel scans below then stay in cache
         slab, times = row_gather(spikes, lo, length, y)
         hist = np.zeros(span + 1, np.int32)
@@ -136,14 +136,14 @@ def coarse_masks(spikes: np.ndarray, ends, span: int, theta: int) -> np.ndarray:
     return distinct_isi_counts(spikes, ends, span) >= int(theta)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def long_isi_buffer(lo, hi):  # pragma: no cover - numba
     """The ``big`` buffer of :func:`distinct_in_words` over steps ``[lo, hi)``: room for its
     ISIs of a word or more (at most one per :data:`~cfsr._words.WORD_STEPS` steps)."""
     return np.empty((hi - lo) // WORD_STEPS + 1, np.int64)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def distinct_in_words(words, k, nw, lo, a, b, span, big, cap):  # pragma: no cover - numba
     """Distinct ISI values ``d <= span`` between consecutive spikes that both lie in
     ``[a, b)``, walking word row ``k`` (:mod:`cfsr._words`, first step ``lo``).
@@ -207,12 +207,12 @@ def distinct_in_words(words, k, nw, lo, a, b, span, big, cap):  # pragma: no cov
     return np.int64(popcount(small)) + nbig
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _distinct_words_kernel(packed, geo, lo, hi, span, out):  # pragma: no cover - numba
     """:func:`distinct_in_words` over ``[lo, hi)`` for every pixel, image order."""
     h, w = out.shape
     nw = n_words(lo, hi)
-    for y in prange(h):
+    for y in range(h):
         words = np.empty((w + ROW_PAD, nw), np.uint64)
         big = long_isi_buffer(lo, hi)
         base, step = row_words(packed, geo, lo, hi, y, 0, w, words)

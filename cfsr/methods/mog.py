@@ -25,14 +25,15 @@ OpenCV is imported lazily here, so ``import cfsr`` does not load it.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+
+from cfsr._jit import njit
 
 __all__ = ["to_u8", "mog_background", "mog_objects"]
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _u8_kernel(r, scale, out):  # pragma: no cover - numba
-    for i in prange(r.size):
+    for i in range(r.size):
         v = r[i]
         if np.isnan(v) or v < 0:  # NaN and -inf are dark
             out[i] = 0

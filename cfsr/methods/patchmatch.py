@@ -71,9 +71,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from cfsr import _simd
+from cfsr._jit import njit
 from cfsr._simd import LANES, READ_COLS, Lanes, box6x8_update
 from cfsr._splitmix import GOLDEN, mix64
 
@@ -167,7 +168,7 @@ class _Search(NamedTuple):
     simd: bool | None
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _rand2(seed, a, b, c, r):  # pragma: no cover - numba
     """Two uniform integers in [-r, r] from the counter (seed, a, b, c)."""
     z = mix64(seed + GOLDEN * np.uint64(a + 1))
@@ -179,12 +180,12 @@ def _rand2(seed, a, b, c, r):  # pragma: no cover - numba
     return dy, dx
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _clamp(v, lo, hi):  # pragma: no cover - numba
     return lo if v < lo else (hi if v > hi else v)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _ssd(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     """SSD of the patch at (y, x) in ``ref`` and (ty, tx) in ``tgt``; stops above ``limit``.
 
@@ -206,7 +207,7 @@ def _ssd(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     return s
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
     """:func:`_ssd`; the default 6 x 6 patch passes a constant (inlined, its loops unroll)."""
     if patch == _simd.PATCH:
@@ -264,7 +265,7 @@ def finish_padding(buf: np.ndarray, patch: int = PATCH) -> np.ndarray:
     return buf
 
 
-@njit(parallel=True, cache=True)
+@njit(hot=True)
 def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
     # pragma: no cover - numba
     """Independent full searches, one target per thread (see :func:`nnf_independent`)."""
@@ -332,7 +333,7 @@ def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
     return off, cost
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _add_cand(cand, nc, cy, cx):  # pragma: no cover - numba
     """Append (cy, cx) to the first ``nc`` rows of ``cand`` unless already there."""
     for k in range(nc):
@@ -343,7 +344,7 @@ def _add_cand(cand, nc, cy, cx):  # pragma: no cover - numba
     return nc + 1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search):  # pragma: no cover - numba
     """Try offset (cy, cx) for the block at columns ``xb .. xl`` of row ``y`` (at most
     ``BLOCK`` apart).
@@ -399,7 +400,7 @@ def _eval_block(ref, tgt, y, xb, xl, cy, cx, lanes, cs, search):  # pragma: no c
                 box[o] = qx - x
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _predicted(off, src, wt, p0, p1, cand):  # pragma: no cover - numba
     """Write into ``cand`` the offsets one target's predictions (``src``, ``wt``: its rows of
     :class:`_Plan`) give the block's two end pixels ``p0`` and ``p1 - 1``; how many.
@@ -444,7 +445,7 @@ def _predicted(off, src, wt, p0, p1, cand):  # pragma: no cover - numba
     return nc
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _block_bests(cand, xs, p0, p1, boy, box):  # pragma: no cover - numba
     """Write into ``cand`` the distinct best offsets (lanes ``boy``, ``box``) of the block's
     pixels ``p0 .. p1-1``; how many."""
@@ -456,7 +457,7 @@ def _block_bests(cand, xs, p0, p1, boy, box):  # pragma: no cover - numba
     return nb
 
 
-@njit(parallel=True, cache=True)
+@njit(hot=True)
 def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
     # pragma: no cover - numba
     """The temporal schedule by bands of blocks (see :func:`nnf_temporal`)."""
@@ -823,7 +824,7 @@ def nnf_multi(
     return nnf_temporal(ref, targets, mask, offsets_steps, **search)
 
 
-@njit(parallel=True, cache=True)
+@njit(hot=True)
 def _fuse_kernel(ref_raw, raw, ys, xs, js, off, cost, scale, out):  # pragma: no cover - numba
     # the pixels ``js`` (ascending) in chunks in parallel; inside a chunk target by target (one
     # frame at a time in cache), each pixel still summing the reference and then the targets

@@ -17,9 +17,10 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import get_num_threads
 
 from cfsr._isi import isi_from_times, search_range
+from cfsr._jit import njit
 from cfsr._words import (
     ROW_PAD,
     WORD_STEPS,
@@ -42,7 +43,7 @@ _WORD_SHIFT = WORD_STEPS.bit_length() - 1
 _WORD_MASK = WORD_STEPS - 1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _rank(words, k, pre, q, mask):  # pragma: no cover - numba
     """Spikes of word row ``k`` before the step at bit ``mask`` (the bits below it set) of
     word ``q``, from the row's prefix counts ``pre``."""
@@ -69,7 +70,7 @@ class _Region(NamedTuple):
     runs: np.ndarray  #: int64 (R, 2): column runs ``[xa, xb)``, crop columns
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _pm_kernel(span, centers_, region, raw, tfa):
     # pragma: no cover - numba
     """TFI rates (``1 / ISI``, float32) and TFA rates at ``centers`` (ascending; written to
@@ -102,7 +103,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
     m_ip = ms[:, 0].copy()
     uthr = np.uint64(max(thr, 0))
     rec, rec_t = _rate_tables(hi - lo, thr)
-    for ir in prange(rows.shape[0]):
+    for ir in range(rows.shape[0]):
         yy = rows[ir]
         words = np.empty((cw + ROW_PAD, nw + 1), np.uint64)
         words[:, nw] = 0  # the step hi may fall on word nw
@@ -172,7 +173,7 @@ def _pm_kernel(span, centers_, region, raw, tfa):
         _fill_outside_runs(raw, tfa, yy, runs[runs_at[tr] : runs_at[tr + 1]], thr > 0)
 
 
-@njit(cache=True)
+@njit
 def _center_ranks(centers, m, n, lo):  # pragma: no cover - numba
     """Per center ``c`` of ``centers``: the word index ``qs`` and the bit mask ``ms`` below
     the steps ``c + 1``, ``c_lo`` and ``c_hi`` of its search range (``max_isi`` = ``m`` in
@@ -191,7 +192,7 @@ def _center_ranks(centers, m, n, lo):  # pragma: no cover - numba
     return qs, ms
 
 
-@njit(cache=True)
+@njit
 def _rate_tables(span, thr):  # pragma: no cover - numba
     """Rates (spikes per step) of one interval, and of ``thr`` intervals, ``d`` steps long
     for ``d`` in ``0..span`` (0 at ``d = 0``): the float32 of the float64 division, as the
@@ -205,7 +206,7 @@ def _rate_tables(span, thr):  # pragma: no cover - numba
     return rec, rec_t
 
 
-@njit(cache=True)
+@njit
 def _store_run(raw, tfa, slot, yy, xa, xb, b_raw, b_tfa, with_tfa):  # pragma: no cover - numba
     """The run ``[xa, xb)`` of row ``yy`` into the frames: one contiguous copy per center
     (center ``kk``'s rates from row ``kk`` of ``b_raw``/``b_tfa`` into frame ``slot[kk]``)."""
@@ -215,7 +216,7 @@ def _store_run(raw, tfa, slot, yy, xa, xb, b_raw, b_tfa, with_tfa):  # pragma: n
             tfa[slot[kk], yy, xa:xb] = b_tfa[kk, xa:xb]
 
 
-@njit(cache=True)
+@njit
 def _fill_outside_runs(raw, tfa, yy, runs, with_tfa):  # pragma: no cover - numba
     """NaN in every frame's row ``yy`` outside the column ``runs`` (ascending ``[xa, xb)``
     pairs of that row): the frames are not pre-filled, so each value is written once."""

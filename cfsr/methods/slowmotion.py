@@ -37,8 +37,8 @@ from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
 
+from cfsr._jit import njit
 from cfsr._words import (
     ROW_PAD,
     Words,
@@ -238,7 +238,7 @@ class _Rule(NamedTuple):
     x0: int
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _bounds(k, first, last, ln):  # pragma: no cover - numba
     """Exact bounds ``(lo, hi)`` on a constant rate and its estimate, from ``k`` spikes, the
     first at step ``first`` and the last at ``last``, of a window ``ln`` steps long (module
@@ -255,7 +255,7 @@ def _bounds(k, first, last, ln):  # pragma: no cover - numba
     return lo, hi, est
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def slow_window(words, r, lo, hi, prefix, c, halves, slack):  # pragma: no cover - numba
     """Rate, half-width and spikes of the longest consistent centred window around step ``c``.
 
@@ -307,7 +307,7 @@ def slow_window(words, r, lo, hi, prefix, c, halves, slack):  # pragma: no cover
     return rate, half, spikes
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _slow_kernel(src, rule, cand, rate, half, count):  # pragma: no cover - numba
     """:func:`slow_window` of the pixels ``cand`` (crop at ``rule.y0, rule.x0``) from their
     spikes in ``[src.lo, src.hi)``, words gathered row by row over the candidates' span."""
@@ -315,7 +315,7 @@ def _slow_kernel(src, rule, cand, rate, half, count):  # pragma: no cover - numb
     c, halves, slack, y0, x0 = rule
     hh = cand.shape[0]
     nw = n_words(lo, hi)
-    for i in prange(hh):
+    for i in range(hh):
         a_x, b_x = candidate_run(cand, i)
         if a_x < 0:
             continue

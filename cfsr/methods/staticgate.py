@@ -27,8 +27,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
 
+from cfsr._jit import njit
 from cfsr._packed import CHUNK, LANES, count_packed, stored_view, upright
 from cfsr._words import PackedWindow
 from cfsr.methods.pmframes import pm_tiles
@@ -94,7 +94,7 @@ def span_isi_rate(
     return _upright(src, _stored(src, flat), np.float32)
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed, changes):
     # pragma: no cover - numba
     """Spikes of every stored pixel in ``[a + window, a + 2 * window)`` into ``recent`` and,
@@ -111,7 +111,7 @@ def _gate_kernel(packed, a, window, lanes, raster, tol, order, recent, failed, c
     height = raster.height
     width = raster.width
     every = changes.shape[0] > 0
-    for i in prange(order.shape[0]):
+    for i in range(order.shape[0]):
         if failed[0] and not every:
             continue
         b0 = order[i] * CHUNK

@@ -34,9 +34,10 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from cfsr._isi import needs_after, needs_before, tfi_interval
+from cfsr._jit import njit
 from cfsr._words import (
     PackedWindow,
     Stored,
@@ -64,7 +65,7 @@ __all__ = [
 DISTINCTIONS = ("steady", "isi_set")
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def interval_stats(words, r, lo, c, radius, a, b, loc):  # pragma: no cover - numba
     """``(spread, isi)`` of word row ``r``, spikes searched in ``[a, b)``: ``isi`` is the TFI
     interval at ``c`` (Eq. 3; :func:`cfsr._words.isi_in_words`'s numbers), ``spread`` is
@@ -133,7 +134,7 @@ class _Around(NamedTuple):
     m: int
 
 
-@njit(parallel=True, cache=True)
+@njit(hot=True)
 def _steady_kernel(src, kept, at, spans, spread, isi, rates, active):  # pragma: no cover - numba
     # the spread searches the TFI's range whatever range the words cover, so its open-ended
     # intervals do not depend on who gathered the words
@@ -179,7 +180,7 @@ def _steady_kernel(src, kept, at, spans, spread, isi, rates, active):  # pragma:
                     rates[j, y, x] = np.float32(1.0 / iv)
 
 
-@njit(cache=True)
+@njit
 def noise_step(size):  # pragma: no cover - numba
     """Every how many rows and columns :func:`noise_level` samples a frame of ``size``
     pixels: 2 above 4 x 4096 (the median of a quarter of a camera frame is as good, at a
@@ -316,10 +317,10 @@ def steady_mask(
     return regularise(raw, close_size=close_size, min_area=min_area)
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _check_kernel(static, isi, match, out):  # pragma: no cover - numba
     h, w = static.shape
-    for y in prange(h):
+    for y in range(h):
         for x in range(w):
             r = static[y, x]
             v = isi[y, x]

@@ -37,8 +37,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
 
+from cfsr._jit import njit
 from cfsr._words import ROW_PAD, Words, n_words, range_times, row_words
 from cfsr.methods._spiketimes import candidate_run
 
@@ -52,7 +52,7 @@ EDGE = 2
 # spike counts), compared by cross-multiplying: no division in the walks.
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _narrow(ln, ld, hn, hd, dt, dk):  # pragma: no cover - numba
     """The period range narrowed by ``|dt - dk * T| < 1`` (a spike ``dk`` spikes and ``dt``
     steps from the anchor lies within one step of the line; ``dk > 0``): ``(fits, ln, ld,
@@ -66,7 +66,7 @@ def _narrow(ln, ld, hn, hd, dt, dk):  # pragma: no cover - numba
     return ln * hd < hn * ld, ln, ld, hn, hd
 
 
-@njit(cache=True)
+@njit
 def _range(tm, i, j):  # pragma: no cover - numba
     """The period range ``(ln, ld, hn, hd)`` of spikes ``i .. j`` (``j > i``) on the line
     through spike ``i``; empty (``ln / ld >= hn / hd``) when they do not fit one."""
@@ -77,7 +77,7 @@ def _range(tm, i, j):  # pragma: no cover - numba
     return ln, ld, hn, hd
 
 
-@njit(cache=True)
+@njit
 def _returns(tm, start, stop, direction, rng, period, min_run, jump):  # pragma: no cover
     """Whether, walking from spike ``start`` to spike ``stop`` (``direction`` +-1), a
     stretch of constant rate at least ``min_run`` steps long whose period range overlaps
@@ -120,7 +120,7 @@ def _returns(tm, start, stop, direction, rng, period, min_run, jump):  # pragma:
     return False
 
 
-@njit(cache=True)
+@njit
 def _run_at(tm, ns, c):  # pragma: no cover - numba
     """The run at step ``c`` in the ``ns`` spike steps ``tm``: ``(i0, i1, (ln, ld, hn,
     hd))``, its first and last spike and its period range; ``i0 = -1`` without a spike at or
@@ -168,7 +168,7 @@ def _run_at(tm, ns, c):  # pragma: no cover - numba
     return i0, i1, (ln, ld, hn, hd)
 
 
-@njit(cache=True)
+@njit
 def still_pixel(tm, ns, c, min_run, jump):  # pragma: no cover - numba
     """``(still, rate)`` of one pixel from its ``ns`` spike steps ``tm`` (int64, ascending, the
     searched range) at step ``c`` (see the module notes); ``rate`` is the run's, 0 when the
@@ -206,7 +206,7 @@ class _Test(NamedTuple):
     x0: int
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _still_kernel(src, kept, test, cand, still, rate):  # pragma: no cover - numba
     """:func:`still_pixel` (``test``: :class:`_Test`) of the pixels ``cand`` from their spikes
     in ``[src.lo, src.hi)`` (:class:`~cfsr._words.Words`): those in ``[lo, mid)`` from the
@@ -221,7 +221,7 @@ def _still_kernel(src, kept, test, cand, still, rate):  # pragma: no cover - num
         mid = max(lo, min(hi, s_hi))
     hh = cand.shape[0]
     nw = n_words(mid, hi)
-    for i in prange(hh):
+    for i in range(hh):
         a_x, b_x = candidate_run(cand, i)
         if a_x < 0:
             continue

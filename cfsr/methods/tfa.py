@@ -23,16 +23,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import njit, prange
 
 from cfsr._isi import search_range
+from cfsr._jit import njit
 from cfsr.methods._spiketimes import pixel_times, row_gather
 from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, Settings, register
 
 __all__ = ["adaptive_rate", "adaptive_rates"]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def grow_span(times, f0, f1, ip, c, n_int):  # pragma: no cover - numba
     """Spike indices ``(a, b)`` spanning ``n_int`` intervals around step ``c``.
 
@@ -74,7 +74,7 @@ def grow_span(times, f0, f1, ip, c, n_int):  # pragma: no cover - numba
     return a, b
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _adaptive_kernel(spikes, centers, n_int, mw, lo, hi, refractory, out):
     # pragma: no cover - numba
     """Rate from the ``n_int`` intervals nearest each of ``centers`` (search ``+- mw`` steps).
@@ -86,7 +86,7 @@ def _adaptive_kernel(spikes, centers, n_int, mw, lo, hi, refractory, out):
     interval) before the rate is taken.
     """
     n, h, w = spikes.shape
-    for y in prange(h):
+    for y in range(h):
         slab, times = row_gather(spikes, lo, hi - lo, y)
         gaps = np.empty(n_int + 1, np.int64)
         for x in range(w):

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import njit, prange
 
 from cfsr._isi import isi_from_times, needs_after, needs_before, search_range, tfi_interval
+from cfsr._jit import njit
 from cfsr._packed import isi_packed, stored_to_image
 from cfsr.methods._spiketimes import pixel_times, row_gather
 from cfsr.methods.registry import Method, Output, Param, Settings, register
@@ -22,7 +22,7 @@ from cfsr.methods.registry import Method, Output, Param, Settings, register
 __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _isi_one(col, c, lo, hi):  # pragma: no cover - numba
     """ISI (steps) containing step ``c`` of the byte column ``col``, spikes searched in
     ``[lo, hi)``: :func:`cfsr._isi.tfi_interval`, open ends included."""
@@ -33,7 +33,7 @@ def _isi_one(col, c, lo, hi):  # pragma: no cover - numba
     return tfi_interval(p, n, pp, nn, lo, hi)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _prev_in(col, t, lo):  # pragma: no cover - numba
     """Last spike of ``col`` in ``[lo, t]`` (-1: none)."""
     while t >= lo:
@@ -43,7 +43,7 @@ def _prev_in(col, t, lo):  # pragma: no cover - numba
     return -1
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _next_in(col, t, hi):  # pragma: no cover - numba
     """First spike of ``col`` in ``[t, hi)`` (-1: none)."""
     while t < hi:
@@ -53,10 +53,10 @@ def _next_in(col, t, hi):  # pragma: no cover - numba
     return -1
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _isi_kernel(spikes, c, lo, hi, out):  # pragma: no cover - numba
     _, h, w = spikes.shape
-    for y in prange(h):
+    for y in range(h):
         for x in range(w):
             out[y, x] = _isi_one(spikes[:, y, x], c, lo, hi)
     return out
@@ -92,7 +92,7 @@ def tfi_rate(spikes: np.ndarray, center: int, *, max_isi: int = 400) -> np.ndarr
     return (1.0 / isi_at(spikes, center, max_isi)).astype(np.float32)
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _isi_multi_kernel(spikes, centers, m, lo, hi, out):  # pragma: no cover - numba
     """:func:`_isi_one` at every index of ``centers`` from one scan per pixel.
 
@@ -101,7 +101,7 @@ def _isi_multi_kernel(spikes, centers, m, lo, hi, out):  # pragma: no cover - nu
     its own search range (:func:`cfsr._isi.search_range`, ``m`` steps each side).
     """
     n, h, w = spikes.shape
-    for y in prange(h):
+    for y in range(h):
         slab, times = row_gather(spikes, lo, hi - lo, y)
         for x in range(w):
             ns = pixel_times(slab, x, lo, times)

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numba import njit, prange
 
 from cfsr._isi import search_range
+from cfsr._jit import njit
 from cfsr._packed import CHUNK, count_packed, stored_to_image
 from cfsr._words import _load_u64, trailing_zeros
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
@@ -31,10 +31,10 @@ __all__ = [
 STATIC_ESTIMATORS = ("isi", "tfp")
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _count_kernel(spikes, a, b, out):  # pragma: no cover - numba
     _, h, w = spikes.shape
-    for y in prange(h):
+    for y in range(h):
         for x in range(w):
             out[y, x] = 0
         # time in the middle, contiguous x innermost: ~10x faster than pixel-outer order
@@ -51,7 +51,7 @@ def count_spikes(spikes: np.ndarray, a: int, b: int) -> np.ndarray:
     return _count_kernel(np.ascontiguousarray(spikes, dtype=np.uint8), a, b, out)
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def span_rate(count, first, last, length):  # pragma: no cover - numba
     """The static-rate rule, spikes per step in [0, 1], from a span's spikes.
 
@@ -78,12 +78,12 @@ def span_rate(count, first, last, length):  # pragma: no cover - numba
     return count / max(1, length)
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _isi_span_kernel(spikes, a, b, mark, out):  # pragma: no cover - numba
     # count with contiguous x innermost (as _count_kernel); the first and the last spike by a
     # forward and a backward scan that stop once every pixel of the row has been seen
     _, h, w = spikes.shape
-    for y in prange(h):
+    for y in range(h):
         cnt = np.zeros(w, np.int64)
         for t in range(a, b):
             for x in range(w):
@@ -117,7 +117,7 @@ def _isi_span_kernel(spikes, a, b, mark, out):  # pragma: no cover - numba
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _isi_span_packed_kernel(packed, a, b, counts, mark, out):  # pragma: no cover - numba
     # ``counts`` per stored pixel come from count_packed (SWAR); here the first and the last
     # spike of each pixel, by a forward and a backward scan of each 64-byte column chunk read
@@ -128,7 +128,7 @@ def _isi_span_packed_kernel(packed, a, b, counts, mark, out):  # pragma: no cove
     nchunks = (nb + CHUNK - 1) // CHUNK
     one = np.uint64(1)
     zero = np.uint64(0)
-    for c in prange(nchunks):
+    for c in range(nchunks):
         b0 = c * CHUNK
         m = min(nb, b0 + CHUNK) - b0
         mw = m // 8  # whole words; then m % 8 single bytes

@@ -42,9 +42,9 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
 
 from cfsr._bits import unpack_layout
+from cfsr._jit import njit
 from cfsr.methods.registry import (
     MAX_UNPACKED_STEPS,
     MAX_WINDOW_STEPS,
@@ -83,11 +83,11 @@ class _State(NamedTuple):
     nsp: np.ndarray  #: int64
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _stp_advance(spikes, t0, st, c):  # pragma: no cover - numba
     """Fold frames ``spikes`` (k, H, W), the first at absolute step ``t0``, into ``st``."""
     k, h, w = spikes.shape
-    for y in prange(h):
+    for y in range(h):
         r_st, u_st, last, nsp = st.r[y], st.u[y], st.last[y], st.nsp[y]
         # time in the middle, contiguous x innermost
         for i in range(k):
@@ -104,11 +104,11 @@ def _stp_advance(spikes, t0, st, c):  # pragma: no cover - numba
                     nsp[x] += 1
 
 
-@njit(parallel=True, cache=True)
+@njit
 def _stp_invert(st, length, c, out):  # pragma: no cover - numba
     """Steady-state inversion of ``st`` after ``length`` steps (rates into ``out``)."""
     h, w = out.shape
-    for y in prange(h):
+    for y in range(h):
         for x in range(w):
             n = st.nsp[y, x]
             if n < 3:

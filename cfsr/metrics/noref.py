@@ -21,7 +21,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
+
+from cfsr._jit import njit
 
 __all__ = ["std_metric", "cpbd"]
 
@@ -79,7 +81,7 @@ _SOBEL_THRESHOLD = 2.0  # grey levels per pixel (normalised Sobel) for vertical 
 _MAX_WIDTH_SEARCH = 100  # pixels searched each side of an edge
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _edge_widths(img, edges, out):  # pragma: no cover - numba
     """Marziliano edge widths along rows at the given (vertical) edge pixels.
 

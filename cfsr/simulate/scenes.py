@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from cfsr._jit import njit
 from cfsr.layout import STEP_RATE_HZ
 from cfsr.simulate.textures import texture
 
@@ -33,7 +34,7 @@ _TWO_PI = 2.0 * math.pi
 # --------------------------------------------------------------------------- kernels
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _clamp01(v):  # pragma: no cover - numba
     if v < 0.0:
         return 0.0
@@ -42,7 +43,7 @@ def _clamp01(v):  # pragma: no cover - numba
     return v
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _bilinear_clamped(tex, v, u):  # pragma: no cover - numba
     """Bilinear sample of ``tex`` at row ``v``, column ``u`` with edge clamping."""
     h, w = tex.shape
@@ -65,7 +66,7 @@ def _bilinear_clamped(tex, v, u):  # pragma: no cover - numba
     return top * (1.0 - fy) + bot * fy
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _bilinear_zero(tex, v, u):  # pragma: no cover - numba
     """Bilinear sample of ``tex`` at (v, u) with zeros outside the texture."""
     h, w = tex.shape
@@ -103,7 +104,7 @@ class _Rotor(NamedTuple):
     bwidth: float  #: > 0: blades are straight bars this wide (px)
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _render_rotor(out, cov, oy, ox, angles, tex, rotor):  # pragma: no cover - numba
     """Composite a rotating textured disk (``period == 0``) or fan over ``out`` in place.
 
@@ -171,7 +172,7 @@ def _render_rotor(out, cov, oy, ox, angles, tex, rotor):  # pragma: no cover - n
     return out
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _render_slider(out, cov, oy, ox, offy, offx, tex_pm, alpha):  # pragma: no cover - numba
     """Composite a translating sprite over ``out`` in place.
 
@@ -201,7 +202,7 @@ def _render_slider(out, cov, oy, ox, offy, offx, tex_pm, alpha):  # pragma: no c
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _reflect(u, n):  # pragma: no cover - numba
     """Coordinate ``u`` folded into ``[0, n - 1]`` by mirroring at the edges (an endless
     plane with no seam in intensity)."""
@@ -212,13 +213,13 @@ def _reflect(u, n):  # pragma: no cover - numba
     return period - u if u > n - 1 else u
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _plane_at(tex, v, u):  # pragma: no cover - numba
     h, w = tex.shape
     return _bilinear_clamped(tex, _reflect(v, h), _reflect(u, w))
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _render_plane(out, cov, oy, ox, dy, dx, tex, edge):  # pragma: no cover - numba
     """Overwrite ``out`` with the plane ``tex`` seen shifted by ``(dy[k], dx[k])`` at step k.
 

@@ -52,8 +52,9 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from cfsr._jit import njit
 from cfsr._splitmix import GOLDEN, mix64
 from cfsr.layout import STEP_RATE_HZ, Layout
 from cfsr.simulate.scenes import Scene, make_scene
@@ -204,7 +205,7 @@ NOISE_PRESETS: dict[str, Noise] = {
 # --------------------------------------------------------------------------- kernel
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _uniform(state):  # pragma: no cover - numba
     """Next (u in (0, 1], state) of a splitmix64 stream."""
     state = state + GOLDEN
@@ -212,7 +213,7 @@ def _uniform(state):  # pragma: no cover - numba
     return u, state
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _poisson(lam, state):  # pragma: no cover - numba
     """Poisson(lam) draw (normal approximation for lam >= 12) and the advanced state."""
     if lam <= 0.0:
@@ -261,7 +262,7 @@ class _Shot(NamedTuple):
     t0: np.int64
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _threshold(p, th):  # pragma: no cover - numba
     """Fire on charge ``p`` against threshold ``th``: (spike 0/1, potential left)."""
     if p >= th:
@@ -271,7 +272,7 @@ def _threshold(p, th):  # pragma: no cover - numba
     return 0, p
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _fire(src, s0, row, out, x0, x1):  # pragma: no cover - numba
     """Integrate one row segment ``x0..x1-1`` for one step; intensity is ``src[x - s0]``;
     ``row``: the row's :class:`_Pixels`."""
@@ -280,7 +281,7 @@ def _fire(src, s0, row, out, x0, x1):  # pragma: no cover - numba
         out[x], pot[x] = _threshold(pot[x] + gain[x] * src[x - s0] + dark[x], thr[x])
 
 
-@njit(cache=True, inline="always")
+@njit(helper=True)
 def _fire_shot(src, s0, row, out, x0, x1, epc, state):  # pragma: no cover - numba
     """Like :func:`_fire` with Poisson photon shot noise; ``epc`` = electrons per unit charge."""
     gain, dark, thr, pot = row
@@ -290,7 +291,7 @@ def _fire_shot(src, s0, row, out, x0, x1, epc, state):  # pragma: no cover - num
     return state
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True)
 def _integrate(light, pixels, shot, out):  # pragma: no cover - numba
     """Integrate-and-fire for ``out.shape[0]`` steps; rows in parallel, time in the middle.
 
