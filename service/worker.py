@@ -195,8 +195,9 @@ class _Worker:
     pool process whenever ``max_fps`` allows, and publishes finished frames in step order:
     a result older than one already shown is dropped (``dropped_order``), one whose spikes
     arrived more than :data:`LATE_S` ago while a newer frame of its config computes, or
-    computed under a replaced config, too (``dropped_late``). With ``workers`` processes several frames are computed at once, each
-    on a different step, so the rate is up to ``workers`` times one process's.
+    computed under a replaced config, too (``dropped_late``). With ``workers`` processes
+    several frames are computed at once, each on a different step, so the rate is up to
+    ``workers`` times one process's.
 
     CFSR's ``quality = auto`` (the live default) picks a tier per frame: ``full`` while the
     measured cost of a full frame lets the pool keep ``max_fps``, else as many ``full``
