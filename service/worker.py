@@ -432,6 +432,11 @@ class _Worker:
             return False
         if self._compiling_first() is not None:
             return self._submit_rung(t, now)
+        if self._first_pending and any(self._current(k) and not k.rung
+                                       for k in self._tasks.values()):
+            # one first frame at a time: it may be compiling, and a second process would only
+            # wait on the same kernels (the ladder's rung can use it instead)
+            return False
         if self._last_submit is not None and t <= self._last_submit:
             return False
         quality = self._quality()

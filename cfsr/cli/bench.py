@@ -325,11 +325,11 @@ def _live(args: argparse.Namespace, bar) -> dict[str, Any]:
 QUICK_LIVE = (("cfsr", "auto", 2, 1), ("tfp", "full", 1, 1))
 
 
-#: Methods whose cost is measured at 1 and 2 threads (issue 14: scaling stated, not guessed).
+#: Methods whose cost is measured at 1 and 2 threads (scaling stated, not guessed).
 SCALING_METHODS = ("tfp", "csr", "cfsr")
 
 #: Dense output (method, stride in steps, frames): outputs closer than the method's window,
-#: as a slow-motion reconstruction asks for them (issue 14: dense output shares work).
+#: as a slow-motion reconstruction asks for them (dense output shares work).
 DENSE_OUTPUTS = (("tfstp", 1, 200), ("cfsr", 32, 8))
 
 #: Pool splits (processes x threads each) measured for CFSR: the same cores, used as one
