@@ -5,6 +5,7 @@ A crashed server's segments are removed by the next start, which says so."""
 from __future__ import annotations
 
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -98,7 +99,10 @@ def test_crashed_servers_segments_are_removed_and_reported(tmp_path, bad_dat):
         pid, rc, out, err = _serve(["--replay", str(bad_dat), "--port", str(free_port()),
                                     "--data-dir", str(bad_dat.parent)], tmp_path)
         assert not any(p.exists() for p in stale)
-        assert "removed 2 shared-memory file(s) left by a server" in out
+        # at least these two: the server removes every dead server's files, and on a shared
+        # host another run may have left some
+        m = re.search(r"removed (\d+) shared-memory file\(s\) left by a server", out)
+        assert m and int(m.group(1)) >= len(stale), out
         _check_one_line(pid, rc, err, "bad.dat")
     finally:
         for p in stale:
