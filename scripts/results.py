@@ -313,7 +313,7 @@ def compile_section(co: dict[str, Any]) -> list[str]:
         return f"{v['median']:.1f} ({v['min']:.1f}-{v['max']:.1f})"
 
     out = _table_head(
-        "## Compiling the kernels",
+        "Compiling the kernels",
         "CPU seconds numba spends on an empty cache (a fresh install), median of "
         f"{co['runs']} run(s) with their range, each in a new process: every method together "
         "(the warm-up's order; kernels shared by several methods count under the first), and "
