@@ -167,8 +167,9 @@ def test_first_serve_compiles_in_the_background_and_stops_it_with_the_server(tmp
 
 
 def test_if_needed_does_nothing_once_this_code_was_warmed(tmp_path):
-    """``cfsr warmup --if-needed`` (what ``./tasks`` runs before serving) returns at once when a
-    complete warm-up of this code left its marker in numba's cache folder."""
+    """``cfsr warmup --if-needed`` (what ``./tasks`` runs before an offline command or the
+    benchmark) returns at once when a complete warm-up of this code left its marker in
+    numba's cache folder."""
     env = {"NUMBA_CACHE_DIR": str(tmp_path)}
     (tmp_path / f"cfsr-warm-{warmup._fingerprint()}").write_text("tfi=0.1\n")
     r = _cli("--if-needed", "--lines", env=env)
