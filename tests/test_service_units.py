@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import struct
 
 import numpy as np
 import pytest
@@ -111,6 +112,15 @@ def test_frame_message_names_its_layout_once():
         assert msg[off["method"]:off["method"] + METHOD_NAME_BYTES] == f.method.encode()
         assert [m["name"] for m in doc["masks"]] == list(slot.mask_names)
         assert len(doc["heat_lut"]) == 256 * 3
+        # every offset the viewer is given reads the field the encoder packed there
+        packed = WS_HEADER.unpack_from(msg)
+        codes = ("4s", "H", "H", "q", "I", "H", "H", "B", "B", "f", "f", "f",
+                 f"{METHOD_NAME_BYTES}s")
+        names = sorted(off, key=off.get)
+        assert len(names) == len(codes) == len(packed)
+        for name, code, value in zip(names, codes, packed, strict=True):
+            assert struct.unpack_from("<" + code, msg, off[name])[0] == value, name
+        assert (packed[0], packed[2], packed[9], packed[10]) == (b"CFSR", 64, 0.5, 1.5)
     finally:
         slot.close()
 
@@ -232,3 +242,37 @@ def test_serve_on_a_busy_port_fails_with_one_clear_line(capsys):
         assert main(["serve", "--port", str(port)]) == 2
     err = capsys.readouterr().err
     assert f"cannot listen on 127.0.0.1:{port}" in err and "--port" in err
+
+
+def test_mask_colours_and_names_are_checked(monkeypatch):
+    """Built-in masks keep their own overlay colour, another method's mask gets a stable one
+    of the palette; the mask names every method declares must fit a frame's header."""
+    import importlib
+
+    from cfsr_live.service import schema
+
+    registry = importlib.import_module("cfsr.methods")  # (cfsr.methods is also a function)
+
+    for name, (rgb, _) in schema.MASK_STYLE.items():
+        assert schema.mask_color(name) == rgb
+    other = schema.mask_color("edges")
+    assert other in schema._PALETTE and schema.mask_color("edges") == other
+    assert schema.display_masks() == ("coarse", "fine", "motion")
+
+    class _Declares:
+        def __init__(self, masks):
+            self.masks = masks
+
+    def declared(*masks):
+        monkeypatch.setattr(registry, "methods", lambda: {"x": None})
+        monkeypatch.setattr(registry, "get_method", lambda _: _Declares(masks))
+        return schema.display_masks
+
+    longest = "m" * (schema.MASK_NAME_BYTES - 1)
+    assert declared(longest, "a", "a")() == (longest, "a")  # each once
+    for bad in ("m" * schema.MASK_NAME_BYTES, "", "maské"):
+        with pytest.raises(ValueError, match="ASCII characters"):
+            declared(bad)()
+    with pytest.raises(ValueError, match="masks"):
+        declared(*(f"m{i}" for i in range(schema.MAX_MASKS + 1)))()
+    assert len(declared(*(f"m{i}" for i in range(schema.MAX_MASKS)))()) == schema.MAX_MASKS
