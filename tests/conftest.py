@@ -6,8 +6,9 @@
   developer machine that lacks them, but FAIL under ``CI=true``, where they must run.
 * The quick tier (``./tasks test --quick`` = ``pytest -m "not slow"``): every module's unit
   tests and small integration tests. ``slow`` is applied here, by what a test uses (a real
-  server, a worker pipeline, the wheel, a system tier, a whole module of long runs), never by
-  hand per test, so a new test that starts a server leaves the quick tier by itself.
+  server or a worker pipeline, in its body or its fixtures; the wheel; a system tier; a whole
+  module of long runs), never by hand per test, so a new test that starts a server leaves the
+  quick tier by itself.
 """
 
 from __future__ import annotations
@@ -25,13 +26,13 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 os.environ.setdefault("CFSR_WARMUP", "0")
 
 
-#: fixtures that start something a quick run cannot afford: a real ``cfsr serve`` (module
-#: servers), a worker pipeline of processes, the built wheel and its venvs, the shared data
+#: fixtures a quick run cannot afford that no name below gives away: the built wheel and its
+#: venvs, the shared data's large recordings
 SLOW_FIXTURES = frozenset({
-    "server", "back_on_a_dat", "pipeline", "pool_pipeline",
     "wheel_file", "base_install", "live_install", "shared_data", "reds_files",
 })
-#: names whose use in a test's body means it starts a real server or a worker process
+#: names whose use in a test's body or in a fixture it uses means it starts a real server or
+#: a worker process
 SLOW_NAMES = frozenset({"LiveServer", "WorkerSupervisor", "_pipeline"})
 #: modules that are long runs as a whole: accuracy tables, the benchmark, the million-step
 #: stream, the fault matrices (a server per row group), kernel compiles into fresh caches
@@ -61,8 +62,14 @@ def _is_slow(item: pytest.Item) -> bool:
     module = getattr(item, "module", None)  # None for items that are not Python functions
     if module is not None and module.__name__.rpartition(".")[2] in SLOW_MODULES:
         return True
-    fn = getattr(item, "function", None)
-    return fn is not None and bool(SLOW_NAMES & _code_names(fn.__code__))
+    # the test's body, and the fixtures it uses (a new fixture that starts a server or a
+    # pipeline is found by what it calls, without a list to keep)
+    funcs = [getattr(item, "function", None)]
+    info = getattr(item, "_fixtureinfo", None)
+    if info is not None:
+        funcs += [d.func for defs in info.name2fixturedefs.values() for d in defs]
+    return any(SLOW_NAMES & _code_names(f.__code__) for f in funcs
+               if hasattr(f, "__code__"))
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -321,27 +321,6 @@ class TestTwoProcesses:
         assert st.dropped_order == 0, st
         assert sup.stats().ring_lost_frames == 0
 
-    def test_while_cfsr_compiles_the_picture_climbs_to_csr_with_its_progress(
-        self, rec, pool_pipeline
-    ):
-        """A CFSR first frame held as by a compile (each process reports it every second):
-        TFP stands in at once, then CSR from the idle process, named in the status with what
-        the first frame waits on; then CFSR takes over and the stand-ins stop."""
-        dev, ring, slot, sup, acq = pool_pipeline
-        _frames(slot, 2, method="tfp")
-        sup.inject("slow_first", seconds=6.0)
-        sup.configure(_cfg("cfsr"))
-        wait_until(lambda: sup.status(40_000.0).status.fallback_method == "csr", 60,
-                   lambda: f"CSR named as the stand-in (status "
-                   f"{sup.status(40_000.0).status.fallback_method})", interval=0.05)
-        st = sup.status(40_000.0).status
-        assert st.compiling is not None and st.compiling.method == "cfsr", st.compiling
-        assert st.compiling.kernel  # what it waits on, named
-        _frames(slot, 2, method="csr", timeout=30)
-        _frames(slot, 2, method="cfsr", timeout=120)
-        st = sup.status(40_000.0).status
-        assert st.fallback_method is None and st.compiling is None
-
     def test_auto_quality_shows_fast_frames_when_full_ones_cannot_hold_the_rate(
         self, rec, pool_pipeline
     ):
@@ -382,6 +361,33 @@ class TestTwoProcesses:
         _frames(slot, 2, method="csr", timeout=60)
         st = sup.status(40_000.0).status
         assert st.fallback_method is None and st.fallback_frames >= 3
+
+
+@pytest.fixture
+def fresh_pool(rec):
+    """A pipeline of two processes of its own: the climb TFP -> CSR -> CFSR is that of a
+    pool whose processes have computed no CSR or CFSR frame yet (the class's pool has)."""
+    yield from _pipeline(rec, workers=2)
+
+
+def test_while_cfsr_compiles_the_picture_climbs_to_csr_with_its_progress(rec, fresh_pool):
+    """A CFSR first frame held as by a compile (each process reports it every second):
+    TFP stands in at once, then CSR from the idle process, named in the status with what
+    the first frame waits on; then CFSR takes over and the stand-ins stop."""
+    dev, ring, slot, sup, acq = fresh_pool
+    _frames(slot, 2, method="tfp")
+    sup.inject("slow_first", seconds=6.0)
+    sup.configure(_cfg("cfsr"))
+    wait_until(lambda: sup.status(40_000.0).status.fallback_method == "csr", 60,
+               lambda: f"CSR named as the stand-in (status "
+               f"{sup.status(40_000.0).status.fallback_method})", interval=0.05)
+    st = sup.status(40_000.0).status
+    assert st.compiling is not None and st.compiling.method == "cfsr", st.compiling
+    assert st.compiling.kernel  # what it waits on, named
+    _frames(slot, 2, method="csr", timeout=30)
+    _frames(slot, 2, method="cfsr", timeout=120)
+    st = sup.status(40_000.0).status
+    assert st.fallback_method is None and st.compiling is None
 
 
 def test_a_restarted_step_clock_shows_its_frames_at_once(rec):
