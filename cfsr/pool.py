@@ -173,7 +173,8 @@ def _limit_threads(threads: int) -> None:
 
 
 def _pool_main(
-    index: int, path: str, size: int, threads: int, task_q: Any, result_q: Any, parent: int
+    index: int, path: str, size: int, threads: int, task_q: Any, result_q: Any, parent: int,
+    nice: int = 0,
 ) -> None:
     """Entry point of a pool process: map the region, answer tasks until told to stop."""
     from cfsr._heap import keep_freed_memory
@@ -184,6 +185,8 @@ def _pool_main(
     ignore_stop_signals()
     keep_freed_memory()
     _limit_threads(threads)
+    if nice:
+        os.nice(nice)
     # at exit, do not wait to hand over results nobody may read any more (an owner that died
     # leaves the queue's pipe full, and the exit would block on it for ever)
     result_q.cancel_join_thread()
@@ -368,6 +371,11 @@ class FramePool:
         Return once every process has started (True), or at once (False: tasks submitted
         meanwhile wait in their process's queue; a process that fails to start is reported by
         :meth:`collect`, as a dead one is).
+    nice : int
+        Added to the processes' nice value (0: as the caller). The live service runs its
+        reconstruction below acquisition this way; what compiles kernels beside it (the
+        background warm-up) must run at the same value, or a compile it holds the lock of
+        would crawl while these processes wait for it.
 
     Use it as a context manager, or call :meth:`close`. Not thread-safe: one owner submits
     and collects.
@@ -380,6 +388,7 @@ class FramePool:
         *,
         region_bytes: int = 64 << 20,
         wait: bool = True,
+        nice: int = 0,
     ) -> None:
         self.threads = max(1, int(threads))
         self.workers = default_workers(self.threads) if workers is None else int(workers)
@@ -397,6 +406,7 @@ class FramePool:
         self._busy: dict[int, Any] = {}  # worker -> tag of the task it runs
         self._result_q: Any = None
         self._wait = bool(wait)
+        self.nice = int(nice)
         #: per process: (when heard, what it reported) of its latest compile heartbeat
         self._compiles: dict[int, tuple[float, CompileBeat]] = {}
         self._start()
@@ -423,7 +433,7 @@ class FramePool:
                 p = self._ctx.Process(
                     target=_pool_main,
                     args=(k, path, self.region_bytes, self.threads, tq, self._result_q,
-                          os.getpid()),
+                          os.getpid(), self.nice),
                     name=f"cfsr-pool-{k}",
                     daemon=True,
                 )

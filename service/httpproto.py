@@ -27,6 +27,8 @@ from typing import Any
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from cfsr_live.service.settings import DEFAULT_MAX_CONNECTIONS
+
 __all__ = [
     "ACCEPT_BATCH",
     "LISTEN_QUEUE",
@@ -42,9 +44,9 @@ __all__ = [
 
 #: seconds a client has to send a whole request head (a browser sends it in one packet)
 HEADER_TIMEOUT_S = 10.0
-#: open connections (HTTP and WebSocket) at most, by default; fewer where the open-file limit
-#: is lower (:func:`connection_cap`)
-DEFAULT_MAX_CONNECTIONS = 1000
+# open connections at most by default (cfsr_live.service.settings, where `cfsr serve --help`
+# reads it without importing uvicorn); fewer where the open-file limit is lower
+# (:func:`connection_cap`)
 #: connections accepted in one go (uvicorn's ``backlog``: asyncio accepts up to this many per
 #: wake-up, before any of them is counted against the cap)
 ACCEPT_BATCH = 16

@@ -1,10 +1,10 @@
 """Kernel warm-up in the background: a first ``cfsr serve`` compiles every method's kernels.
 
-On a fresh install numba compiles a method's kernels when the worker first runs it: most of a
-minute for CFSR, during which the viewer shows no frame of it. The server therefore starts
-``cfsr warmup`` (:mod:`cfsr.warmup`) once, in its own process at the lowest CPU priority, so it
-never slows acquisition or the worker's frames, and reports its progress in ``GET /api/status``
-(``kernels``) and the viewer. The kernels land in numba's on-disk cache, from which the worker
+On a fresh install numba compiles a method's kernels when the worker first runs it. The server
+therefore starts ``cfsr warmup`` (:mod:`cfsr.warmup`) once, in its own process at the
+reconstruction's CPU priority (:data:`RECONSTRUCTION_NICE`, below acquisition), and reports its
+progress, kernel by kernel, in ``GET /api/status`` (``kernels``) and the viewer. The kernels
+land in numba's on-disk cache, from which the worker
 loads them in well under a second when the user switches method. A server whose kernels are
 already cached (the marker of :func:`cfsr.warmup.is_warm`) starts no warm-up.
 """
@@ -20,7 +20,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-__all__ = ["KernelWarmup", "KernelStatus", "warmup_enabled"]
+__all__ = ["KernelWarmup", "KernelStatus", "warmup_enabled", "RECONSTRUCTION_NICE"]
 
 #: ``CFSR_WARMUP=0`` turns the background warm-up off (the test suite does, except where it
 #: tests it, so that each server it starts does not compile in the background)
@@ -57,9 +57,16 @@ class KernelStatus(BaseModel):
     error: str | None = None
 
 
+#: the nice value of what reconstructs: the worker's pool processes and this warm-up. Both run
+#: below acquisition, the ring and the recorder (the web process) and the worker's ingest; they
+#: run at the same value because they share the kernels' compile locks (cfsr._jit): a warm-up
+#: at a lower priority holding a lock would crawl while the pool waits for it
+RECONSTRUCTION_NICE = 10
+
+
 def _child_setup() -> None:  # pragma: no cover - runs in the child before exec
-    """Lowest CPU priority, and (Linux) end with the server even when it is killed."""
-    os.nice(19)
+    """Reconstruction's CPU priority, and (Linux) end with the server even when killed."""
+    os.nice(RECONSTRUCTION_NICE)
     try:
         import ctypes
         import signal

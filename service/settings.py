@@ -10,6 +10,10 @@ from typing import Any
 
 from cfsr.datfile import MIN_GAIN
 
+#: open connections (HTTP and WebSocket) at most, by default (service/httpproto.py lowers it
+#: under the open-file limit); here so that the parser of `cfsr serve` needs no uvicorn
+DEFAULT_MAX_CONNECTIONS = 1000
+
 #: frames per second the worker (or one client) may ask for: below 0.1 a viewer would wait
 #: minutes for a frame
 MAX_FPS_RANGE = (0.1, 240.0)

@@ -37,6 +37,7 @@ from typing import Any, Literal, NamedTuple
 from cfsr.layout import Layout
 from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
+from cfsr_live.service.kernels import RECONSTRUCTION_NICE
 from cfsr_live.service.schema import WorkerCounters
 from cfsr_live.service.status import (
     CompileProgress,
@@ -171,6 +172,9 @@ class _Task(NamedTuple):
 #: the rung of the ladder shown while a method's first frame waits on its compile, computed
 #: by an idle pool process (TFP, the first rung, is computed by the worker itself)
 LADDER = {"cfsr": "csr"}
+#: most stand-in frames a second (TFP, CSR) while a first frame compiles: enough to see the
+#: scene move, and the CPU goes to the compile the user waits for
+STAND_IN_FPS = 5.0
 #: the ``fallback`` counter's values: which rung stands in
 RUNG_CODES = {"tfp": 1, "csr": 2}
 _RUNG_NAMES = {v: k for k, v in RUNG_CODES.items()}
@@ -233,7 +237,7 @@ class _Worker:
         self.slow_first = 0.0  # test hook (Inject "slow_first")
         # not waiting for the processes to start: the heartbeat and the first frames of the
         # loop do not wait on their imports
-        self.pool = FramePool(workers, threads, wait=False)
+        self.pool = FramePool(workers, threads, wait=False, nice=RECONSTRUCTION_NICE)
         self.put("workers", self.pool.workers)
         self.put("threads", self.pool.threads)
         self._tasks: dict[int, _Task] = {}
@@ -498,7 +502,8 @@ class _Worker:
             t, self._arrival_of(t + after), "full", self.config.version, now, k, rung,
             (k, rung) not in self._warm, self._clock, rung=True,
         )
-        self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
+        self._next_out = max(now + 1.0 / min(self.config.max_fps, STAND_IN_FPS),
+                             time.monotonic())
         return True
 
     def _collect(self) -> bool:
@@ -641,7 +646,7 @@ class _Worker:
         self.put("fallback", float(self._rung))
         self._publish(t, out, "tfp", self._arrival_of(t), ms, timed=False)
         self.bump("fallback_frames")
-        self._fallback_next = now + 1.0 / self.config.max_fps
+        self._fallback_next = now + 1.0 / min(self.config.max_fps, STAND_IN_FPS)
         return True
 
     def _publish(

@@ -15,7 +15,7 @@ from livehelpers import wait_until
 
 import cfsr
 from cfsr import warmup
-from cfsr_live.service.kernels import KernelWarmup
+from cfsr_live.service.kernels import RECONSTRUCTION_NICE, KernelWarmup
 
 # the package, not the function cfsr.methods() that shadows it as an attribute of cfsr
 REGISTRY = importlib.import_module("cfsr.methods")
@@ -96,7 +96,7 @@ def test_background_warm_up_reports_progress_and_finishes(monkeypatch):
     assert st.ready == ["tfi", "tfp"] and st.pending == [] and st.elapsed_s > 0
 
 
-def test_background_warm_up_runs_at_lowest_priority_and_stops_with_the_server(
+def test_background_warm_up_runs_at_the_pools_priority_and_stops_with_the_server(
     tmp_path, monkeypatch
 ):
     monkeypatch.setenv("CFSR_WARMUP", "1")
@@ -107,7 +107,9 @@ def test_background_warm_up_runs_at_lowest_priority_and_stops_with_the_server(
     proc = k._proc
     assert proc is not None
     try:
-        assert os.getpriority(os.PRIO_PROCESS, proc.pid) == 19
+        # the pool's priority: below acquisition, and never below a pool process waiting
+        # for a compile lock this process holds
+        assert os.getpriority(os.PRIO_PROCESS, proc.pid) == RECONSTRUCTION_NICE
         time.sleep(0.5)
         assert proc.poll() is None and k.status().state == "compiling"
     finally:
@@ -159,7 +161,7 @@ def test_first_serve_compiles_in_the_background_and_stops_it_with_the_server(tmp
         st = srv.wait_for(lambda s: s["kernels"]["pid"], 60, "a warm-up process")["kernels"]
         assert st["state"] == "compiling" and st["pending"][0] == "tfp"  # the worker's first
         pid = st["pid"]
-        assert os.getpriority(os.PRIO_PROCESS, pid) == 19
+        assert os.getpriority(os.PRIO_PROCESS, pid) == RECONSTRUCTION_NICE
         assert "compiling the methods' kernels in the background" in srv.output()
     finally:
         srv.stop()

@@ -50,8 +50,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from cfsr.cli._common import add_pool_arguments, count_type
     from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
     from cfsr_live.service import sources
-    from cfsr_live.service.httpproto import DEFAULT_MAX_CONNECTIONS
-    from cfsr_live.service.settings import MAX_FPS_RANGE, RING_MAX_MB_RANGE, RING_SECONDS_RANGE
+    from cfsr_live.service.settings import (
+        DEFAULT_MAX_CONNECTIONS,
+        MAX_FPS_RANGE,
+        RING_MAX_MB_RANGE,
+        RING_SECONDS_RANGE,
+    )
 
     fps_lo, fps_hi = MAX_FPS_RANGE
     ring_lo, ring_hi = RING_SECONDS_RANGE
