@@ -2,7 +2,7 @@
 
 On a fresh install numba compiles a method's kernels when the worker first runs it. The server
 therefore starts ``cfsr warmup`` (:mod:`cfsr.warmup`) once, in its own process at the
-reconstruction's CPU priority (:data:`RECONSTRUCTION_NICE`, below acquisition), and reports its
+reconstruction's CPU priority (:data:`RECONSTRUCTION_NICE`, the pool's), and reports its
 progress, kernel by kernel, in ``GET /api/status`` (``kernels``) and the viewer. The kernels
 land in numba's on-disk cache, from which the worker
 loads them in well under a second when the user switches method. A server whose kernels are
@@ -57,16 +57,18 @@ class KernelStatus(BaseModel):
     error: str | None = None
 
 
-#: the nice value of what reconstructs: the worker's pool processes and this warm-up. Both run
-#: below acquisition, the ring and the recorder (the web process) and the worker's ingest; they
-#: run at the same value because they share the kernels' compile locks (cfsr._jit): a warm-up
-#: at a lower priority holding a lock would crawl while the pool waits for it
-RECONSTRUCTION_NICE = 10
+#: the nice value of what reconstructs: the worker's pool processes and this warm-up. They
+#: run at one value because they share the kernels' compile locks (cfsr._jit): a warm-up at a
+#: lower priority holding a lock crawled while the pool waited for it (the first CFSR frame
+#: came 2-3 times later). 0, not above: at 10, beside two CPU-bound processes, the first CFSR
+#: frame took 781 s (measured by scripts/first_frame.py --busy 2)
+RECONSTRUCTION_NICE = 0
 
 
 def _child_setup() -> None:  # pragma: no cover - runs in the child before exec
     """Reconstruction's CPU priority, and (Linux) end with the server even when killed."""
-    os.nice(RECONSTRUCTION_NICE)
+    if RECONSTRUCTION_NICE:
+        os.nice(RECONSTRUCTION_NICE)
     try:
         import ctypes
         import signal

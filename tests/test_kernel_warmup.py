@@ -107,8 +107,8 @@ def test_background_warm_up_runs_at_the_pools_priority_and_stops_with_the_server
     proc = k._proc
     assert proc is not None
     try:
-        # the pool's priority: below acquisition, and never below a pool process waiting
-        # for a compile lock this process holds
+        # the pool's priority: never below a pool process waiting for a compile lock this
+        # process holds
         assert os.getpriority(os.PRIO_PROCESS, proc.pid) == RECONSTRUCTION_NICE
         time.sleep(0.5)
         assert proc.poll() is None and k.status().state == "compiling"
