@@ -675,6 +675,12 @@ def shared_pool(workers: int | None = None, threads: int = 1) -> FramePool:
         _drop_shared()
     if _shared is None:
         _shared = FramePool(want, threads)
+        # registered now, after multiprocessing registered its own exit function (when the
+        # first process started): exit functions run last-registered first, and
+        # multiprocessing's joins every child with no timeout, after a SIGTERM that pool
+        # processes ignore (their owner stops them), so it must find them closed already
+        atexit.unregister(close_shared_pool)
+        atexit.register(close_shared_pool)
     return _shared
 
 
@@ -697,7 +703,6 @@ def close_shared_pool() -> None:
         _drop_shared()
 
 
-atexit.register(close_shared_pool)
 
 
 # ----------------------------------------------------------------------------------------------
