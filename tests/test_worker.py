@@ -376,7 +376,9 @@ def test_while_cfsr_compiles_the_picture_climbs_to_csr_with_its_progress(rec, fr
     the first frame waits on; then CFSR takes over and the stand-ins stop."""
     dev, ring, slot, sup, acq = fresh_pool
     _frames(slot, 2, method="tfp")
-    sup.inject("slow_first", seconds=6.0)
+    # held long enough for the idle process to load CSR's kernels and show two of its frames
+    # on a busy host (the rung's frames come at most 5 a second)
+    sup.inject("slow_first", seconds=30.0)
     sup.configure(_cfg("cfsr"))
     wait_until(lambda: sup.status(40_000.0).status.fallback_method == "csr", 60,
                lambda: f"CSR named as the stand-in (status "
