@@ -11,15 +11,16 @@ blocks that the requested times need are read, so sparse times in a long file co
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 from cfsr.config import MethodConfig
 from cfsr.methods.registry import Output
+from cfsr.pool import FramePool, PoolResult, borrowed_pool
 from cfsr.spikes import SpikeRecording
 from cfsr.streaming import StreamingReconstructor
 
-__all__ = ["carry_groups", "stream_reconstruct", "POOL_MIN_MS", "POOL_START_S"]
+__all__ = ["carry_groups", "pool_outputs", "stream_reconstruct", "POOL_MIN_MS", "POOL_START_S"]
 
 #: ``workers=None`` starts the pool only when the first group took at least this long per
 #: output (ms): below it, copying windows to the processes costs about what they save
@@ -96,7 +97,7 @@ def stream_reconstruct(
     pool : FramePool, optional
         A running pool to use (then ``workers`` and ``threads`` are ignored).
     """
-    from cfsr.pool import default_workers, pool_outputs, shared_pool_running
+    from cfsr.pool import default_workers, shared_pool_running
 
     ts = sorted({int(t) for t in times})
     bad = [t for t in ts if not 0 <= t < rec.n_frames]
@@ -131,3 +132,68 @@ def stream_reconstruct(
             yield from _streamed(rec, sr, [t for g in groups for t in g], block)
             return
     yield from pool_outputs(rec, cfg, groups, workers=workers, threads=threads, carry=True)
+
+
+def pool_outputs(
+    recording: Any,
+    config: MethodConfig,
+    groups: Iterable[Sequence[int]],
+    *,
+    workers: int | None = None,
+    threads: int = 1,
+    carry: bool = False,
+    pool: FramePool | None = None,
+) -> Iterator[tuple[int, Output]]:
+    """Yield ``(t, Output)`` for every step of ``groups``, in the order given, computed on a
+    :class:`FramePool` (one group per task).
+
+    ``recording`` is anything with ``packed(a, b)``, ``n_frames`` and ``layout`` (a
+    :class:`~cfsr.spikes.SpikeRecording`). Each output's window is ``[t - before, t + after]``
+    clipped to the recording, as in :func:`cfsr.reconstruct`, so the numbers are the same as
+    one process's. With ``carry`` the outputs of a group continue one memo (carried work);
+    a group's first output always starts from nothing, so the result does not depend on the
+    number of processes.
+    """
+    before, after = config.window
+    n = int(recording.n_frames)
+    layout = recording.layout
+    tasks = []
+    for g in groups:
+        spans = [(max(0, t - before), min(n, t + after + 1), int(t)) for t in g]
+        if spans:
+            a0, b0 = min(s[0] for s in spans), max(s[1] for s in spans)
+            tasks.append((a0, b0, spans))
+    need = max((b - a for a, b, _ in tasks), default=0) * layout.frame_bytes
+    if pool is not None:
+        yield from _run_tasks(pool, recording, config, tasks, need, carry)
+        return
+    with borrowed_pool(workers, threads, len(tasks), need) as borrowed:
+        yield from _run_tasks(borrowed, recording, config, tasks, need, carry)
+
+
+def _run_tasks(
+    pool: FramePool,
+    recording: Any,
+    config: MethodConfig,
+    tasks: list[tuple[int, int, list[tuple[int, int, int]]]],
+    need: int,
+    carry: bool,
+) -> Iterator[tuple[int, Output]]:
+    """Submit the tasks as processes come free; yield their outputs in the tasks' order."""
+    if need > pool.region_bytes:
+        pool.grow(need)
+    done: dict[int, PoolResult] = {}
+    nxt = 0  # next group to yield
+    sub = 0  # next group to submit
+    while nxt < len(tasks):
+        while sub < len(tasks) and pool.idle:
+            a0, b0, spans = tasks[sub]
+            pool.submit(sub, config, recording.layout, recording.packed(a0, b0), a0, spans,
+                        carry=carry)
+            sub += 1
+        while nxt not in done:
+            r = pool.collect()
+            assert r is not None
+            done[r.tag] = r
+        yield from done.pop(nxt).outputs
+        nxt += 1

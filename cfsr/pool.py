@@ -11,8 +11,9 @@ Both users of the pool go through it, so both get the same numbers as one proces
 
 * the live worker (``cfsr_live.service.worker``) copies the window of its newest step out of its
   streaming buffer into a free process's region and publishes the results in step order;
-* :func:`pool_outputs` (behind :func:`cfsr.reconstruct` and ``cfsr reconstruct``) cuts a
-  recording's output steps into groups and runs each group in one process.
+* :func:`cfsr.offline.pool_outputs` (behind :func:`cfsr.reconstruct` and ``cfsr
+  reconstruct``) cuts a recording's output steps into groups and runs each group in one
+  process.
 
 A task's output is computed by :meth:`Method.run_window` on exactly the bytes and window
 bounds the single-process path uses (a reconstruction is a pure function of its window, its
@@ -34,24 +35,29 @@ import mmap
 import multiprocessing as mp
 import os
 import queue
-import signal
 import tempfile
 import threading
 import time
-import traceback
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cfsr._pool_process import CompileBeat, PoolResult, _pool_main, _Task
 from cfsr.config import MethodConfig
 from cfsr.layout import Layout
-from cfsr.methods.registry import Output
+from cfsr.procs import (
+    COMPILE_BEAT_S,
+    ignore_stop_signals,
+    release_queue,
+    spawn_without_main,
+    start_compile_beat,
+    stop_signals_blocked,
+)
 
 if TYPE_CHECKING:
-    from cfsr._jit import CompileActivity
+    pass
 
 __all__ = [
     "FramePool",
@@ -63,17 +69,13 @@ __all__ = [
     "release_queue",
     "ignore_stop_signals",
     "stop_signals_blocked",
-    "pool_outputs",
+    "borrowed_pool",
     "shared_pool",
     "start_compile_beat",
     "close_shared_pool",
 ]
 
 log = logging.getLogger("cfsr.pool")
-
-#: how long a process waits for a task before it checks that its parent still lives (s)
-_PARENT_CHECK_S = 1.0
-
 
 class PoolError(RuntimeError):
     """A pool process failed: it died, or did not start."""
@@ -99,255 +101,6 @@ def usable_cores() -> int:
 def default_workers(threads: int = 1) -> int:
     """Processes of ``threads`` threads each that the usable cores allow (at least 1)."""
     return max(1, usable_cores() // max(1, int(threads)))
-
-
-@dataclass(frozen=True)
-class PoolResult:
-    """The answer to one task: its ``tag``, the ``(t, Output)`` of each step asked for, in
-    order, and the wall time each took in the process (ms, per step)."""
-
-    tag: Any
-    outputs: list[tuple[int, Output]]
-    compute_ms: list[float]
-    worker: int
-
-
-@dataclass(frozen=True)
-class CompileBeat:
-    """A pool process's report of a kernel compile in progress, sent every
-    :data:`COMPILE_BEAT_S` while it lasts and once when it ends.
-
-    ``kernel``: the kernel compiled, or waited for while another process compiles it
-    (``waiting``); None once the compile ended. ``kernels``: kernels compiled or loaded from
-    the cache since the process's current task began; ``cpu_s``: CPU seconds the process
-    spent since then."""
-
-    kernel: str | None
-    waiting: bool
-    kernels: int
-    cpu_s: float
-
-    @property
-    def busy(self) -> bool:
-        return self.kernel is not None
-
-
-@dataclass(frozen=True)
-class _Task:
-    tag: Any
-    config: MethodConfig
-    layout: Layout
-    start: int  # absolute step of the region's first frame
-    n_frames: int  # frames in the region
-    spans: tuple[tuple[int, int, int], ...]  # (a, b, t) per output, absolute steps
-    carry: bool  # one memo for the task's outputs (carried work), else a fresh one each
-    delay: float = 0.0  # test hook: seconds to wait first (as a compile does)
-
-
-class _RegionView:
-    """What :meth:`Method.run_window` reads: ``packed``/``frames``/``layout`` over the region."""
-
-    def __init__(self, frames: np.ndarray, start: int, layout: Layout) -> None:
-        self._frames, self._start, self.layout = frames, start, layout
-
-    def packed(self, a: int, b: int) -> np.ndarray:
-        return self._frames[a - self._start : b - self._start]
-
-    def frames(self, a: int, b: int) -> np.ndarray:
-        from cfsr._bits import unpack_layout
-
-        return unpack_layout(self.packed(a, b), self.layout)
-
-
-def _limit_threads(threads: int) -> None:
-    """Run this process's numba kernels and OpenCV on ``threads`` threads."""
-    import numba
-
-    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-    try:
-        import cv2
-
-        cv2.setNumThreads(int(threads))
-    except ImportError:  # pragma: no cover - OpenCV is a base dependency
-        pass
-
-
-def _pool_main(
-    index: int, path: str, size: int, threads: int, task_q: Any, result_q: Any, parent: int,
-    nice: int = 0,
-) -> None:
-    """Entry point of a pool process: map the region, answer tasks until told to stop."""
-    from cfsr._heap import keep_freed_memory
-    from cfsr._jit import activity, waiting_for
-
-    # Ctrl+C, a closed terminal, Ctrl+\ and a kill of the process group reach us too: the
-    # pool's owner stops us (and releases what we share) rather than the signal half-way
-    ignore_stop_signals()
-    keep_freed_memory()
-    _limit_threads(threads)
-    if nice:
-        os.nice(nice)
-    # at exit, do not wait to hand over results nobody may read any more (an owner that died
-    # leaves the queue's pipe full, and the exit would block on it for ever)
-    result_q.cancel_join_thread()
-    fd = os.open(path, os.O_RDWR)
-    try:
-        region = mmap.mmap(fd, size)
-    finally:
-        os.close(fd)
-    result_q.put(("ready", index, os.getpid()))
-    base = [0, 0.0]  # kernels compiled or loaded, and CPU seconds, when the task began
-
-    def report(act: CompileActivity) -> None:
-        beat = CompileBeat(act.kernel, act.waiting, act.compiled + act.loaded - base[0],
-                           time.process_time() - base[1])
-        result_q.put(("compiling", index, beat))
-
-    start_compile_beat(report)
-    buf = np.frombuffer(region, np.uint8)
-    while True:
-        try:
-            task = task_q.get(timeout=_PARENT_CHECK_S)
-        except queue.Empty:
-            if os.getppid() != parent:
-                return  # the owner died without stopping us: do not linger
-            continue
-        if task is None:
-            return
-        act = activity()
-        base[:] = [act.compiled + act.loaded, time.process_time()]
-        try:
-            if task.delay:  # test hook: a first frame held as by another process's compile
-                with waiting_for("(injected delay)"):
-                    time.sleep(task.delay)
-            m = task.config.spec
-            fb = task.layout.frame_bytes
-            frames = buf[: task.n_frames * fb].reshape(task.n_frames, fb)
-            view = _RegionView(frames, task.start, task.layout)
-            memo: dict[str, Any] = {}
-            outs, ms = [], []
-            for a, b, t in task.spans:
-                t0 = time.perf_counter()
-                if not task.carry:
-                    memo = {}
-                outs.append((t, m.run_window(view, a, b, t, task.config.params, memo)))
-                ms.append((time.perf_counter() - t0) * 1e3)
-            result_q.put(("done", index, PoolResult(task.tag, outs, ms, index)))
-        except Exception as exc:  # noqa: BLE001 - reported to the owner, which decides
-            msg = f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"
-            result_q.put(("error", index, (task.tag, msg)))
-
-
-#: seconds between two reports of a compile in progress (the pool process's heartbeat)
-COMPILE_BEAT_S = 1.0
-
-
-def start_compile_beat(send: Any, every: float = COMPILE_BEAT_S) -> threading.Thread:
-    """In a process that may compile kernels: a daemon thread that calls ``send(activity)``
-    (a :class:`cfsr._jit.CompileActivity`) every ``every`` seconds while numba compiles one of
-    cfsr's kernels here or waits for another process's compile of one, and once when that
-    ends. The compile holds the process's main thread for as long as it takes (minutes on a
-    busy machine); this beat is how its owner tells it from a hung one."""
-    from cfsr._jit import activity
-
-    def beat() -> None:
-        was_busy = False
-        while True:
-            act = activity()
-            if act.busy or was_busy:
-                try:
-                    send(act)
-                except (OSError, ValueError):  # the owner is gone
-                    return
-            was_busy = act.busy
-            time.sleep(every)
-
-    th = threading.Thread(target=beat, name="cfsr-compile-beat", daemon=True)
-    th.start()
-    return th
-
-
-#: the signals that end a process group (Ctrl+C, a closed terminal, Ctrl+\, kill): a
-#: child process leaves them to its owner, which stops it cleanly
-STOP_SIGNALS = tuple(
-    getattr(signal, n) for n in ("SIGINT", "SIGHUP", "SIGQUIT", "SIGTERM") if hasattr(signal, n)
-)
-
-
-@contextmanager
-def stop_signals_blocked() -> Iterator[None]:
-    """Block :data:`STOP_SIGNALS` in this thread while child processes start: the mask is
-    inherited across the spawn, so a child importing its modules cannot be ended half-way
-    (with semaphores and shared memory left behind) before it calls
-    :func:`ignore_stop_signals`."""
-    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-def ignore_stop_signals() -> None:
-    """In a child process: ignore :data:`STOP_SIGNALS` (its owner stops it), then unblock
-    them (:func:`stop_signals_blocked`; one that came meanwhile is dropped)."""
-    for sig in STOP_SIGNALS:
-        signal.signal(sig, signal.SIG_IGN)
-    if hasattr(signal, "pthread_sigmask"):
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
-
-
-def release_queue(q: Any, timeout: float = 1.0) -> None:
-    """Close a multiprocessing queue this process created, so that its semaphores are
-    released by this thread, not by the queue's feeder thread.
-
-    The feeder thread (started by the first ``put``) holds the queue's write lock and
-    semaphore until it ends; when it ends after the owner dropped the queue, it is the
-    feeder that runs the semaphores' release (unlink, then tell the resource tracker). A
-    process leaving right then kills the daemon feeder between the two, and the tracker
-    reports "1 leaked semaphore" for a name that is already gone. So the feeder is given
-    ``timeout`` seconds to flush and end (microseconds normally; a pipe that nobody drains
-    would keep it for ever, hence the bound and no wait at exit)."""
-    q.close()
-    q.cancel_join_thread()
-    feeder = getattr(q, "_thread", None)  # CPython's QueueFeederThread; None before a put
-    if feeder is not None:
-        feeder.join(timeout)
-
-
-_spawn_lock = threading.Lock()
-
-
-@contextmanager
-def _spawn_without_main() -> Iterator[None]:
-    """Start processes that do not re-run the caller's ``__main__``.
-
-    A spawned process normally imports the parent's main module first (``spawn`` re-runs a
-    script as ``__mp_main__``), which crashes a script with no ``if __name__ ==
-    "__main__":`` guard (its pool start runs again, inside the bootstrapping child) and one
-    read from stdin (the child looks for a file named ``<stdin>``). A pool process needs
-    nothing of the caller's main module: its target and every task are cfsr's own objects,
-    pickled by reference. So the preparation data the child receives leaves the main module
-    out, whatever the caller is: a script with or without a guard, stdin, the REPL, a
-    notebook."""
-    import multiprocessing.spawn as mp_spawn
-
-    with _spawn_lock:
-        original = mp_spawn.get_preparation_data
-
-        def without_main(name: str) -> dict[str, Any]:
-            d = original(name)
-            d.pop("init_main_from_path", None)
-            d.pop("init_main_from_name", None)
-            return d
-
-        mp_spawn.get_preparation_data = without_main
-        try:
-            yield
-        finally:
-            mp_spawn.get_preparation_data = original
 
 
 def _shm_folder() -> str:
@@ -437,7 +190,7 @@ class FramePool:
                     name=f"cfsr-pool-{k}",
                     daemon=True,
                 )
-                with stop_signals_blocked(), _spawn_without_main():
+                with stop_signals_blocked(), spawn_without_main():
                     p.start()
                 self._procs.append(p)
             log.info("cfsr pool: %d process(es) of %d thread(s), started with 'spawn' "
@@ -665,8 +418,7 @@ def shared_pool(workers: int | None = None, threads: int = 1) -> FramePool:
     """This process's pool of ``workers`` processes of ``threads`` threads, started at its
     first use and kept for later calls (closed at exit, or by :func:`close_shared_pool`): a
     second :func:`cfsr.reconstruct` pays no process start and no kernel load. A call asking
-    for another shape restarts it. Not thread-safe: :func:`pool_outputs` uses it under a
-    lock (another thread meanwhile gets a pool of its own)."""
+    for another shape restarts it. Not thread-safe: use it through :func:`borrowed_pool`."""
     global _shared
     want = default_workers(threads) if workers is None else int(workers)
     if _shared is not None and (
@@ -703,81 +455,26 @@ def close_shared_pool() -> None:
         _drop_shared()
 
 
-
-
-# ----------------------------------------------------------------------------------------------
-# offline: a recording's output steps, group by group
-# ----------------------------------------------------------------------------------------------
-def pool_outputs(
-    recording: Any,
-    config: MethodConfig,
-    groups: Iterable[Sequence[int]],
-    *,
-    workers: int | None = None,
-    threads: int = 1,
-    carry: bool = False,
-    pool: FramePool | None = None,
-) -> Iterator[tuple[int, Output]]:
-    """Yield ``(t, Output)`` for every step of ``groups``, in the order given, computed on a
-    :class:`FramePool` (one group per task).
-
-    ``recording`` is anything with ``packed(a, b)``, ``n_frames`` and ``layout`` (a
-    :class:`~cfsr.spikes.SpikeRecording`). Each output's window is ``[t - before, t + after]``
-    clipped to the recording, as in :func:`cfsr.reconstruct`, so the numbers are the same as
-    one process's. With ``carry`` the outputs of a group continue one memo (carried work);
-    a group's first output always starts from nothing, so the result does not depend on the
-    number of processes.
-    """
-    before, after = config.window
-    n = int(recording.n_frames)
-    layout = recording.layout
-    tasks = []
-    for g in groups:
-        spans = [(max(0, t - before), min(n, t + after + 1), int(t)) for t in g]
-        if spans:
-            a0, b0 = min(s[0] for s in spans), max(s[1] for s in spans)
-            tasks.append((a0, b0, spans))
-    need = max((b - a for a, b, _ in tasks), default=0) * layout.frame_bytes
-    own = shared = False
-    if pool is None:
-        # this process's shared pool, unless another thread is using it right now
-        shared = _shared_lock.acquire(blocking=False)
-        if shared:
-            try:
-                pool = shared_pool(workers, threads)
-            except BaseException:
-                _shared_lock.release()
-                raise
-        else:
-            own = True
-            want = max(1, min(default_workers(threads) if workers is None else workers,
-                              len(tasks)))
-            pool = FramePool(want, threads, region_bytes=max(need, 1 << 20))
-    assert pool is not None
-    finished = False
+@contextmanager
+def borrowed_pool(
+    workers: int | None, threads: int, tasks: int, region_bytes: int
+) -> Iterator[FramePool]:
+    """This process's shared pool (:func:`shared_pool`) for the body, or, while another
+    thread uses it, a pool of its own for ``tasks`` tasks, closed after. A body that does not
+    finish (an error, a generator left half-way) drops the shared pool: its processes may
+    still be computing that body's tasks."""
+    if not _shared_lock.acquire(blocking=False):
+        want = max(1, min(default_workers(threads) if workers is None else workers, tasks))
+        with FramePool(want, threads, region_bytes=max(region_bytes, 1 << 20)) as own:
+            yield own
+        return
     try:
-        if need > pool.region_bytes:
-            pool.grow(need)
-        done: dict[int, PoolResult] = {}
-        nxt = 0  # next group to yield
-        sub = 0  # next group to submit
-        while nxt < len(tasks):
-            while sub < len(tasks) and pool.idle:
-                a0, b0, spans = tasks[sub]
-                pool.submit(sub, config, layout, recording.packed(a0, b0), a0, spans,
-                            carry=carry)
-                sub += 1
-            while nxt not in done:
-                r = pool.collect()
-                assert r is not None
-                done[r.tag] = r
-            yield from done.pop(nxt).outputs
-            nxt += 1
-        finished = True
+        pool = shared_pool(workers, threads)
+        try:
+            yield pool
+        except BaseException:
+            _drop_shared()
+            raise
     finally:
-        if own:
-            pool.close()
-        elif shared:
-            if not finished:  # abandoned or failed half-way: tasks may still run there
-                _drop_shared()
-            _shared_lock.release()
+        _shared_lock.release()
+

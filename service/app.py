@@ -87,8 +87,6 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         sources,
         status,
     )
-    from cfsr_live.service.security import HostOriginGuard, allowed_hosts
-
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         rt = runtime
@@ -123,6 +121,27 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         ),
         lifespan=lifespan,
     )
+    _add_error_handlers(app)
+    app.state.sessions = SessionStore()
+    app.state.auth_throttle = AttemptThrottle()
+
+    app.state.settings = settings
+    app.state.metrics = status.make_registry(app)
+    for r in (health, session, status, config, sources, record, media):
+        app.include_router(r.router)
+    if settings.test_hooks:
+        app.include_router(debug.router)
+    _add_guards(app, settings)
+    vd = viewer_dir(settings)
+    if vd.is_dir():
+        app.mount("/", StaticFiles(directory=vd, html=True), name="viewer")
+    else:
+        log.warning("viewer folder %s is missing; only the API is served", vd)
+    return app
+
+def _add_error_handlers(app: FastAPI) -> None:
+    """One 422 shape for the whole API, and no answer that quotes much of a request."""
+
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, exc: HTTPException):
         # One 422 shape for the whole API: our own checks (a method's parameter range, a seek
@@ -148,15 +167,11 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         ]
         return JSONResponse({"detail": errors}, status_code=422)
 
-    app.state.sessions = SessionStore()
-    app.state.auth_throttle = AttemptThrottle()
 
-    app.state.settings = settings
-    app.state.metrics = status.make_registry(app)
-    for r in (health, session, status, config, sources, record, media):
-        app.include_router(r.router)
-    if settings.test_hooks:
-        app.include_router(debug.router)
+def _add_guards(app: FastAPI, settings: Settings) -> None:
+    """The middleware every request meets before a route: Host and Origin, then the body."""
+    from cfsr_live.service.security import HostOriginGuard, allowed_hosts
+
     # every request body, strict JSON of bounded size and time, before any route
     # (cfsr_live.service.body); the token is checked before a byte of it is read
     # a quarter of the connections at most wait on bodies: the rest stay free for others
@@ -170,9 +185,3 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         hosts=allowed_hosts(settings.host, settings.allowed_hosts),
         origins=settings.allowed_origins,
     )
-    vd = viewer_dir(settings)
-    if vd.is_dir():
-        app.mount("/", StaticFiles(directory=vd, html=True), name="viewer")
-    else:
-        log.warning("viewer folder %s is missing; only the API is served", vd)
-    return app

@@ -779,14 +779,15 @@ def worker_main(
     over ring blocks, commands and frames, and ``workers`` pool processes of ``threads``
     threads that reconstruct."""
     from cfsr._heap import keep_freed_memory
-    from cfsr.pool import ignore_stop_signals
+    from cfsr.procs import ignore_stop_signals
 
     # Ctrl+C, a closed terminal, Ctrl+\ and a kill of the process group reach us too: the
     # supervisor stops us (and our pool, releasing its semaphores and regions), not the
     # signal; it kills us (SIGKILL) when a stop does not end us.
     ignore_stop_signals()
     keep_freed_memory()  # frames reuse the last frame's large arrays (no page faults)
-    from cfsr.pool import PoolError, TaskError, start_compile_beat
+    from cfsr.pool import PoolError, TaskError
+    from cfsr.procs import start_compile_beat
 
     # We are a daemon of the web process (ended with it), and multiprocessing forbids a
     # daemon children of its own; our pool's processes are daemons of ours and also leave by
@@ -880,7 +881,7 @@ class WorkerSupervisor:
     hang_timeout : float
         Seconds without a heartbeat after which the worker is considered hung and restarted.
         A compile in the worker itself does not count: its compile heartbeat keeps the
-        heartbeat fresh meanwhile (:func:`cfsr.pool.start_compile_beat`).
+        heartbeat fresh meanwhile (:func:`cfsr.procs.start_compile_beat`).
     """
 
     def __init__(
@@ -936,7 +937,7 @@ class WorkerSupervisor:
         self._thread.start()
 
     def _spawn(self) -> None:
-        from cfsr.pool import release_queue
+        from cfsr.procs import release_queue
 
         with self._lock:
             self.ready.clear()
@@ -960,7 +961,7 @@ class WorkerSupervisor:
                 name="cfsr-worker",
                 daemon=True,
             )
-            from cfsr.pool import stop_signals_blocked
+            from cfsr.procs import stop_signals_blocked
 
             with stop_signals_blocked():  # until the worker ignores them (worker_main)
                 self._proc.start()
@@ -987,7 +988,7 @@ class WorkerSupervisor:
                     proc.join(2)
         if self._thread is not None:
             self._thread.join(2)
-        from cfsr.pool import release_queue
+        from cfsr.procs import release_queue
 
         for q in (self._cmd_q, self._evt_q):
             if q is not None:

@@ -15,21 +15,30 @@ import pytest
 
 from cfsr import _jit
 
-# A kernel module outside the package, compiled slowly on purpose: the listener sleeps at the
-# start of each compile, so two processes started together overlap on it for sure.
-_SLOW_KERNEL = textwrap.dedent(
+# Scripts' first lines: every compile in them starts SECONDS late, so that a compile is
+# long enough to be seen (by another process, or by the heartbeat) for sure.
+_SLOW_COMPILES = textwrap.dedent(
     """
     import json, sys, time
     from numba.core import event
-    from cfsr._jit import njit, activity, on_compile
+    import cfsr._jit  # its listener first: the sleep below is inside a compile it sees
 
     class Slow(event.Listener):
         def on_start(self, ev):
-            time.sleep(1.5)
+            time.sleep(SECONDS)
         def on_end(self, ev):
             pass
 
     event.register("numba:compile", Slow())
+    """
+)
+
+# A kernel module outside the package, compiled slowly on purpose, so two processes started
+# together overlap on it.
+_SLOW_KERNEL = _SLOW_COMPILES.replace("SECONDS", "1.5") + textwrap.dedent(
+    """
+    from cfsr._jit import njit, activity, on_compile
+
     events = []
     on_compile(lambda kind, act: events.append(kind))
 
@@ -153,20 +162,11 @@ def test_a_failed_compile_releases_its_lock(tmp_path, monkeypatch):
 def test_activity_counts_compiles_and_the_beat_reports_them(tmp_path, monkeypatch):
     """The compile activity a progress bar and the pool's heartbeat read: a kernel compiled
     here is counted, with its name, and the beat sends while a compile runs."""
-    code = textwrap.dedent(
+    code = _SLOW_COMPILES.replace("SECONDS", "0.5") + textwrap.dedent(
         """
-        import json, time
-        from numba.core import event
         from cfsr._jit import njit, activity
-        from cfsr.pool import start_compile_beat
+        from cfsr.procs import start_compile_beat
 
-        class Slow(event.Listener):
-            def on_start(self, ev):
-                time.sleep(0.5)
-            def on_end(self, ev):
-                pass
-
-        event.register("numba:compile", Slow())
         beats = []
         start_compile_beat(beats.append, every=0.1)
 

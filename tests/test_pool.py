@@ -17,8 +17,8 @@ from cfsr.api import reconstruct_outputs
 from cfsr.cli import main
 from cfsr.config import MethodConfig
 from cfsr.methods.registry import get_method, resolve_params
-from cfsr.offline import carry_groups, stream_reconstruct
-from cfsr.pool import FramePool, PoolError, TaskError, pool_outputs
+from cfsr.offline import carry_groups, pool_outputs, stream_reconstruct
+from cfsr.pool import FramePool, PoolError, TaskError
 from cfsr.simulate import simulate
 from cfsr.spikes import as_recording
 
@@ -193,7 +193,7 @@ def test_a_released_queue_frees_its_semaphores_in_the_callers_thread():
     import gc
     import multiprocessing as mp
 
-    from cfsr.pool import release_queue
+    from cfsr.procs import release_queue
 
     if not Path("/dev/shm").is_dir():
         pytest.skip("POSIX semaphores are not files in /dev/shm on this system")
