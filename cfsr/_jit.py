@@ -20,14 +20,14 @@ two things numba's on-disk cache lacks:
   others, so no caller needs to throw the whole cache away.
 
 It also keeps a record of what the compiler is doing in this process (:func:`activity`): the
-kernel being compiled or waited for and since when, how many were compiled and loaded, and
-the CPU seconds compiling took. Progress bars read it, and the pool's heartbeat sends it to the
+kernel being compiled or waited for, how many were compiled and loaded, and their names.
+Progress bars read it, and the pool's heartbeat sends it to the
 pool's owner so that a process busy compiling is never taken for a hung one.
 
-Kernels are plain typed loops: no ``parallel=True`` (the pool gives the parallelism, one frame
-per single-threaded process, and a parfor costs several times a loop's compile) and no IR
-inlining (LLVM inlines small helpers on its own; numba's ``inline="always"`` re-types the
-helper in every caller). The simulator's kernels, which no pool runs, keep their parfors.
+Kernels are plain typed loops (the pool gives the parallelism, one frame per single-threaded
+process) except the few declared ``hot``, whose frame cost needs numba's parallel loops and
+its IR inlining of helpers (:func:`njit`); helpers are inlined into hot kernels only. The
+simulator's kernels, which no pool runs, keep their parfors.
 """
 
 from __future__ import annotations
@@ -38,7 +38,6 @@ import functools
 import hashlib
 import os
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -261,18 +260,14 @@ class CompileActivity:
     """What numba has done for cfsr's kernels in this process.
 
     ``kernel``: the kernel being compiled, or waited for while another process compiles it
-    (``waiting``), None when neither; ``since``: when that began (``time.monotonic()``);
-    ``compiled``/``loaded``: kernels compiled here / loaded from the cache so far;
-    ``compile_cpu_s``: CPU seconds this process spent compiling (finished compiles);
-    ``done``: names of the kernels compiled here, in order.
+    (``waiting``), None when neither; ``compiled``/``loaded``: kernels compiled here /
+    loaded from the cache so far; ``done``: names of the kernels compiled here, in order.
     """
 
     kernel: str | None = None
     waiting: bool = False
-    since: float = 0.0
     compiled: int = 0
     loaded: int = 0
-    compile_cpu_s: float = 0.0
     done: tuple[str, ...] = field(default_factory=tuple)
 
     @property
@@ -283,8 +278,8 @@ class CompileActivity:
 
 _state_lock = threading.Lock()
 _state = CompileActivity()
-#: (kernel, wall start, cpu start, declared here) per nesting level of compiles
-_stack: list[tuple[str, float, float, bool]] = []
+#: (kernel, declared here) per nesting level of compiles
+_stack: list[tuple[str, bool]] = []
 _listeners: list[Callable[[str, CompileActivity], None]] = []
 
 
@@ -322,13 +317,13 @@ def _record_load() -> None:
 def waiting_for(kernel: str) -> Iterator[None]:
     """Mark this process as waiting for another process's compile of ``kernel`` while the
     body runs (the lock's wait; the pool's test hook for a slow first frame)."""
-    outer = (_state.kernel, _state.waiting, _state.since)
-    _set(kernel=kernel, waiting=True, since=time.monotonic())
+    outer = (_state.kernel, _state.waiting)
+    _set(kernel=kernel, waiting=True)
     _emit("wait")
     try:
         yield
     finally:
-        _set(kernel=outer[0], waiting=outer[1], since=outer[2] or 0.0)
+        _set(kernel=outer[0], waiting=outer[1])
 
 
 class _Listener(event.Listener):
@@ -339,33 +334,28 @@ class _Listener(event.Listener):
         disp = ev.data["dispatcher"]
         ours = isinstance(getattr(disp, "_cache", None), _KernelCache)
         name = kernel_name(disp.py_func)
-        _stack.append((name, time.monotonic(), time.process_time(), ours))
+        _stack.append((name, ours))
         if ours:
-            _set(kernel=name, waiting=False, since=time.monotonic())
+            _set(kernel=name, waiting=False)
             _emit("start")
 
     def on_end(self, ev: event.Event) -> None:
         disp = ev.data["dispatcher"]
-        name, _, cpu0, ours = _stack.pop()
+        name, ours = _stack.pop()
         if getattr(ev, "_exc_details", None) is not None:  # numba has no public accessor
             cache = getattr(disp, "_cache", None)
             if isinstance(cache, _KernelCache):
                 cache.release()
         if not ours:
             return
-        took = time.process_time() - cpu0
-        outer = next((s for s in reversed(_stack) if s[3]), None)
+        outer = next((s for s in reversed(_stack) if s[1]), None)
         global _state
         with _state_lock:
-            # the CPU of a nested compile counts once, in its outermost kernel
-            cpu = _state.compile_cpu_s + (took if outer is None else 0.0)
             _state = replace(
                 _state,
                 kernel=outer[0] if outer else None,
-                since=outer[1] if outer else 0.0,
                 waiting=False,
                 compiled=_state.compiled + 1,
-                compile_cpu_s=cpu,
                 done=(*_state.done, name),
             )
         _emit("end")
