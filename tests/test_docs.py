@@ -213,3 +213,31 @@ def test_the_flag_check_reads_commands_as_the_docs_write_them():
         ("serve", "--replay"), ("serve", "--usb"), ("info", "--json")]
     assert _code_snippets("a `cfsr b --c` and ``cfsr d --e``\n```sh\ncfsr f --g\n```\n") == [
         "cfsr b --c", "cfsr d --e", "cfsr f --g"]
+
+
+def _install_table() -> dict[str, list[str]]:
+    """The README's install table: extra ("" for the base install) -> the commands it lists."""
+    out = {}
+    for line in _readme().splitlines():
+        m = re.match(r"\| `cfsr(?:\[(\w+)\])?` \|[^|]*\|(.*)\|$", line)
+        if m:
+            out[m.group(1) or ""] = re.findall(r"`([^`]+)`", m.group(2))
+    return out
+
+
+def test_commands_listed_under_an_extra_are_the_readmes():
+    """The CLI lists a command under an extra (shown as unavailable without it) only where the
+    README's install table does, and never one the base install runs (``record --replay``)."""
+    from cfsr.cli import EXTRA_COMMANDS
+    from cfsr.cli._extras import EXTRAS
+
+    table = _install_table()
+    assert {"", "live", "cluster", "bench"} <= set(table), table
+    base = {c.split()[0] for c in table[""]}
+    assert "record" in base
+    for name, (extra, _) in EXTRA_COMMANDS.items():
+        assert name not in base, f"'cfsr {name}' runs on the base install, yet is listed [{extra}]"
+        assert name in table[extra], f"'cfsr {name}' is not in the README's cfsr[{extra}] row"
+    for extra, (what, _) in EXTRAS.items():
+        for cmd in re.findall(r"cfsr ([a-z]+)\b(?! --)", what):
+            assert cmd not in base, f"cfsr[{extra}] claims 'cfsr {cmd}', a base command"

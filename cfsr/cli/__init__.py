@@ -37,10 +37,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
 #: entry-point group through which other layers add commands
 PLUGIN_GROUP = "cfsr.commands"
 
-#: commands an extra brings: shown (and explained) even when that extra's part is absent
+#: commands an extra brings: shown (and explained) even when that extra's part is absent.
+#: ``record`` is not one: the base install records from a file or the simulator, and only its
+#: ``--usb`` source says which extra it needs.
 EXTRA_COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("live", "start the live service and browser viewer"),
-    "record": ("live", "record spikes from a source to .dat + sidecar"),
 }
 
 

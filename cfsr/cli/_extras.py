@@ -15,7 +15,7 @@ __all__ = ["EXTRAS", "MissingExtra", "extra_for_module", "missing_extra_message"
 #: pyusb imports as ``usb``, prometheus-client as ``prometheus_client``.
 EXTRAS: dict[str, tuple[str, tuple[str, ...]]] = {
     "live": (
-        "the live service (cfsr serve, cfsr record) and the USB driver",
+        "the live service (cfsr serve) or the USB camera (cfsr record --usb)",
         ("fastapi", "uvicorn", "websockets", "prometheus_client", "usb"),
     ),
     "cluster": ("reconstruction on a Dask cluster (--cluster)", ("dask", "distributed")),
