@@ -22,7 +22,9 @@ two things numba's on-disk cache lacks:
 It also keeps a record of what the compiler is doing in this process (:func:`activity`): the
 kernel being compiled or waited for, how many were compiled and loaded, and their names.
 Progress bars read it, and the pool's heartbeat sends it to the
-pool's owner so that a process busy compiling is never taken for a hung one.
+pool's owner so that a process busy compiling is never taken for a hung one. With
+``CFSR_COMPILE_LOG`` set to a file, every process appends a line per compile to it, so the
+compile cost of a whole run (a server and its pool, a test suite) can be added up.
 
 Kernels are plain typed loops (the pool gives the parallelism, one frame per single-threaded
 process) except the few declared ``hot``, whose frame cost needs numba's parallel loops and
@@ -36,8 +38,10 @@ import ast
 import fcntl
 import functools
 import hashlib
+import json
 import os
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -278,8 +282,8 @@ class CompileActivity:
 
 _state_lock = threading.Lock()
 _state = CompileActivity()
-#: (kernel, declared here) per nesting level of compiles
-_stack: list[tuple[str, bool]] = []
+#: (kernel, declared here, thread CPU seconds at its start) per nesting level of compiles
+_stack: list[tuple[str, bool, float]] = []
 _listeners: list[Callable[[str, CompileActivity], None]] = []
 
 
@@ -334,14 +338,16 @@ class _Listener(event.Listener):
         disp = ev.data["dispatcher"]
         ours = isinstance(getattr(disp, "_cache", None), _KernelCache)
         name = kernel_name(disp.py_func)
-        _stack.append((name, ours))
+        _stack.append((name, ours, time.thread_time()))
         if ours:
             _set(kernel=name, waiting=False)
             _emit("start")
 
     def on_end(self, ev: event.Event) -> None:
         disp = ev.data["dispatcher"]
-        name, ours = _stack.pop()
+        name, ours, cpu0 = _stack.pop()
+        if not _stack:
+            _log_compile(name, time.thread_time() - cpu0)
         if getattr(ev, "_exc_details", None) is not None:  # numba has no public accessor
             cache = getattr(disp, "_cache", None)
             if isinstance(cache, _KernelCache):
@@ -359,6 +365,25 @@ class _Listener(event.Listener):
                 done=(*_state.done, name),
             )
         _emit("end")
+
+
+def _log_compile(name: str, cpu_s: float) -> None:
+    """Append an outermost compile (its kernel and thread CPU seconds, callees included) to
+    the file named by ``CFSR_COMPILE_LOG``, when set: one JSON line per compile, from every
+    process that inherits the variable, so a whole run (a test suite, a server and its pool)
+    can be added up. Short lines appended with ``O_APPEND`` in one write do not interleave."""
+    path = os.environ.get("CFSR_COMPILE_LOG")
+    if not path:
+        return
+    line = json.dumps({"kernel": name, "cpu_s": round(cpu_s, 3), "pid": os.getpid()})
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    except OSError:
+        return  # a diagnostic: never fail a compile for it
+    try:
+        os.write(fd, (line + "\n").encode())
+    finally:
+        os.close(fd)
 
 
 event.register("numba:compile", _Listener())

@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 
 import pytest
+from compile_report import pytest_configure, pytest_terminal_summary  # noqa: F401 (hooks)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CFSR_SHARED_DATA", REPO.parent / "shared" / "data"))
