@@ -11,7 +11,7 @@ from starlette.requests import HTTPConnection
 
 from cfsr_live.service.hub import FrameHub
 from cfsr_live.service.runtime import Runtime
-from cfsr_live.service.security import SESSION_COOKIE, AttemptThrottle
+from cfsr_live.service.security import SESSION_COOKIE, AttemptThrottle, throttle_key
 from cfsr_live.service.settings import Settings
 
 __all__ = [
@@ -68,8 +68,9 @@ def _supplied(headers) -> str | None:
 
 
 def client_key(conn: HTTPConnection) -> str:
-    """Who a request comes from, for the wrong-token throttle: the peer address."""
-    return conn.client.host if conn.client else "?"
+    """Who a request comes from, for the wrong-token throttle: the peer address, or the
+    local user of a loopback client (:func:`cfsr_live.service.security.throttle_key`)."""
+    return throttle_key(conn.scope.get("client"), conn.scope.get("server"))
 
 
 def token_matches(settings: Settings, given: str) -> bool:

@@ -22,13 +22,16 @@ never in a URL, where servers and proxies log it. Wrong tokens are throttled per
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import re
 import secrets
+import struct
 import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Iterable
+from pathlib import Path
 from urllib.parse import urlsplit
 
 __all__ = [
@@ -40,6 +43,7 @@ __all__ = [
     "SESSION_SECONDS",
     "HostOriginGuard",
     "allowed_hosts",
+    "throttle_key",
 ]
 
 SESSION_COOKIE = "cfsr_session"
@@ -115,8 +119,9 @@ class AttemptThrottle:
     ``window_s`` seconds, that client's tries (right or wrong, so the throttle cannot be
     probed) are refused (HTTP 429) until the oldest of those falls out of the window.
 
-    Keyed by the client's address; at most ``max_clients`` are remembered (the least recent
-    go first), so a flood of addresses cannot grow it without bound."""
+    Keyed by client (:func:`throttle_key`: the address, or for a loopback connection the
+    local user it comes from); at most ``max_clients`` are remembered (the least recent go
+    first), so a flood of addresses cannot grow it without bound."""
 
     def __init__(self, limit: int = 5, window_s: float = 10.0, max_clients: int = 4096) -> None:
         self.limit, self.window_s, self.max_clients = limit, window_s, max_clients
@@ -144,6 +149,75 @@ class AttemptThrottle:
             self._fails[client] = q
             while len(self._fails) > self.max_clients:
                 self._fails.popitem(last=False)
+
+
+#: where Linux shows its TCP sockets, with the user id that owns each
+PROC_NET = Path("/proc/net")
+
+
+def _proc_forms(host: str) -> list[str]:
+    """``host`` as ``/proc/net/tcp`` (IPv4) and ``/proc/net/tcp6`` print it: 32-bit words
+    in the machine's byte order, in hex."""
+    ip = ipaddress.ip_address(host)
+    v4 = ip if isinstance(ip, ipaddress.IPv4Address) else ip.ipv4_mapped
+    forms = []
+    if v4 is not None:
+        forms.append(f"{struct.unpack('=I', v4.packed)[0]:08X}")
+        ip = ipaddress.IPv6Address(b"\0" * 10 + b"\xff\xff" + v4.packed)
+    forms.append("".join(f"{w:08X}" for w in struct.unpack("=4I", ip.packed)))
+    return forms
+
+
+def loopback_peer_uid(client: tuple[str, int], server: tuple[str, int],
+                      proc_net: Path = PROC_NET) -> int | None:
+    """The user id that owns the client's end of a loopback TCP connection: the kernel's
+    socket table line whose local end is ``client`` and remote end ``server``. ``None``
+    where there is no such table (not Linux) or no live socket (the client closed already:
+    a closed socket's time-wait line shows user 0 and no inode, so it is not believed)."""
+    (chost, cport), (shost, sport) = client, server
+    try:
+        pairs = [(f"{c}:{cport:04X}", f"{s}:{sport:04X}")
+                 for c in _proc_forms(chost) for s in _proc_forms(shost)]
+    except ValueError:
+        return None
+    for table in ("tcp", "tcp6"):
+        try:
+            text = (proc_net / table).read_text()
+        except OSError:
+            continue
+        for local, remote in pairs:
+            at = text.find(f"{local} {remote}")
+            while at >= 0:
+                line = text[text.rfind("\n", 0, at) + 1:text.find("\n", at)].split()
+                if len(line) > 9 and line[1:3] == [local, remote] and line[9] != "0":
+                    return int(line[7])
+                at = text.find(f"{local} {remote}", at + 1)
+    return None
+
+
+def throttle_key(client: tuple[str, int] | None, server: tuple[str, int] | None,
+                 proc_net: Path = PROC_NET) -> str:
+    """The wrong-token throttle's slot for a connection from ``client`` to ``server``.
+
+    A remote client is its address. Every local process comes from a loopback address, so
+    keyed by address one local process's wrong tokens locked out every Bearer user on the
+    machine (and rotating the source over 127.0.0.0/8 escaped the throttle). A loopback
+    client is keyed by the local user that owns its socket instead: another user's process
+    throttles only that user. Processes of one user share a slot, as they share everything
+    else (each can read the other's memory and environment); a slot per process would give
+    an attacker a fresh slot per fork. Where the owner cannot be read, all loopback clients
+    share one slot."""
+    if not client:
+        return "?"
+    try:
+        ip = ipaddress.ip_address(client[0])
+    except ValueError:
+        return client[0]
+    v4 = ip.ipv4_mapped if isinstance(ip, ipaddress.IPv6Address) else None
+    if not (ip.is_loopback or (v4 is not None and v4.is_loopback)):
+        return client[0]
+    uid = loopback_peer_uid(client, server, proc_net) if server else None
+    return "loopback" if uid is None else f"loopback uid {uid}"
 
 
 class HostOriginGuard:

@@ -3,6 +3,10 @@ the token never appears in a URL or in the output (issue 12, items 6 and 7)."""
 
 from __future__ import annotations
 
+import os
+import socket
+import sys
+
 import httpx
 import pytest
 from fastapi import FastAPI, WebSocket
@@ -15,6 +19,7 @@ from cfsr_live.service.security import (
     SessionStore,
     allowed_hosts,
     redact,
+    throttle_key,
 )
 
 
@@ -96,6 +101,55 @@ def test_wrong_tokens_are_throttled_per_client():
     assert t.retry_after("a", now=103.0) == pytest.approx(7.0)
     assert t.retry_after("b", now=103.0) == 0  # another client is not held
     assert t.retry_after("a", now=110.5) == 0  # the oldest try left the window
+
+
+def test_a_loopback_client_is_keyed_by_its_local_user():
+    """Every local process comes from a loopback address: keyed by address, one process's
+    wrong tokens locked out every local Bearer user, and rotating the source address over
+    127.0.0.0/8 escaped the throttle. The key is the user that owns the client's socket."""
+    me = f"loopback uid {os.getuid()}"
+    with socket.create_server(("127.0.0.1", 0)) as srv:
+        for source in ("127.0.0.1", "127.0.0.2", "127.9.8.7"):
+            with socket.socket() as c:
+                c.bind((source, 0))
+                c.connect(srv.getsockname())
+                conn, _ = srv.accept()
+                with conn:
+                    assert throttle_key(conn.getpeername(), conn.getsockname()) == me, source
+    if socket.has_ipv6:
+        with socket.create_server(("::1", 0), family=socket.AF_INET6) as srv6, \
+                socket.create_connection(srv6.getsockname()[:2]):
+            conn, _ = srv6.accept()
+            with conn:
+                assert throttle_key(conn.getpeername()[:2], conn.getsockname()[:2]) == me
+    assert throttle_key(("192.0.2.7", 5000), ("192.0.2.1", 8000)) == "192.0.2.7"
+    assert throttle_key(("testclient", 50000), None) == "testclient"
+    assert throttle_key(None, None) == "?"
+
+
+@pytest.mark.skipif(sys.byteorder != "little", reason="the table below is a little-endian one")
+def test_another_users_wrong_tokens_do_not_throttle_mine(tmp_path):
+    """Keys from the kernel's socket table as Linux prints it: user 1001's client end of
+    127.0.0.1:4660 -> 127.0.0.1:8080, user 1000's of :4661, and a closed one's time-wait
+    line (user 0, no inode), which is not believed."""
+    head = "  sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid"
+    rows = [("1234", "01", 1001, 555), ("1235", "01", 1000, 556), ("1236", "06", 0, 0)]
+    (tmp_path / "tcp").write_text("\n".join([head] + [
+        f"   {i}: 0100007F:{port} 0100007F:1F90 {st} 00000000:00000000 00:00000000 00000000 "
+        f"{uid:>5}        0 {inode} 1 0000000000000000 20 4 0 10 -1"
+        for i, (port, st, uid, inode) in enumerate(rows)]) + "\n")
+    server = ("127.0.0.1", 8080)
+
+    def key(port: int) -> str:
+        return throttle_key(("127.0.0.1", port), server, proc_net=tmp_path)
+
+    assert key(0x1234) == "loopback uid 1001" and key(0x1235) == "loopback uid 1000"
+    assert key(0x1236) == key(0x4321) == "loopback"  # closed, or not in the table
+    t = AttemptThrottle(limit=3, window_s=10.0)
+    for k in range(10):
+        t.failed(key(0x1234), now=100.0 + k / 10)
+    assert t.retry_after(key(0x1234), now=101.0) > 0
+    assert t.retry_after(key(0x1235), now=101.0) == 0  # user 1000 is not locked out
 
 
 def test_redact_hides_every_form_of_a_secret():
