@@ -49,6 +49,40 @@ print(json.dumps(out))
 """
 
 
+#: the pool's start on a filled cache: two one-thread processes from spawn to their first CFSR
+#: frame, less what a second round of frames takes once they run (the frames themselves)
+_POOL = """
+import json, time
+from cfsr._bits import pack_frames
+from cfsr.config import MethodConfig
+from cfsr.layout import Layout
+from cfsr.pool import FramePool
+from cfsr.warmup import _moving_spikes
+packed = pack_frames(_moving_spikes(1600, 250, 400, vanish=900))
+layout = Layout(400, 250)
+cfg = MethodConfig("cfsr", None)
+before, after = cfg.window
+n = len(packed)
+def one_round(p, ts):
+    for t in ts:
+        a, b = t - before, t + after + 1
+        p.submit(t, cfg, layout, packed[a:b], a, [(a, b, t)])
+    while p.pending:
+        p.collect()
+starts = []
+for _ in range(RUNS):
+    t0 = time.perf_counter()
+    with FramePool(2, 1, region_bytes=(before + after + 1) * layout.frame_bytes) as p:
+        one_round(p, [n - after - 1, n - after - 9])
+        first = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        one_round(p, [n - after - 17, n - after - 25])
+        frames = time.perf_counter() - t1
+    starts.append(first - frames)
+print(json.dumps({"pool_start_s": sorted(starts)[len(starts) // 2]}))
+"""
+
+
 def _child(code: str, cache: str) -> dict[str, Any]:
     env = {**os.environ, "NUMBA_CACHE_DIR": cache}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
@@ -72,7 +106,7 @@ def compile_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
     names = [m for m in WARM_ORDER if m in known] + [m for m in known if m not in WARM_ORDER]
     runs = 1 if args.quick else 3
     bar.reset(total=runs * (len(names) + 2))
-    together, alone, frames = [], {m: [] for m in names}, []
+    together, alone, frames, pool = [], {m: [] for m in names}, [], []
     for _ in range(runs):
         with tempfile.TemporaryDirectory(prefix="cfsr-compile-") as cache:
             bar.set_description_str("compile: all methods")
@@ -80,6 +114,8 @@ def compile_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
             bar.update()
             bar.set_description_str("frame cost, one thread")
             frames.append(_child(_FRAMES.replace("FRAMES", "5" if args.quick else "12"), cache))
+            bar.set_description_str("pool start")
+            pool.append(_child(_POOL.replace("RUNS", "1" if args.quick else "3"), cache))
             bar.update()
         for m in names:
             with tempfile.TemporaryDirectory(prefix="cfsr-compile-") as cache:
@@ -103,6 +139,7 @@ def compile_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
         "kernels_cpu_s": {k: statistics.median(v) for k, v in
                           sorted(kernels.items(), key=lambda kv: -statistics.median(kv[1]))},
         "frame_cpu_ms_one_thread": {m: _spread([f[m] for f in frames]) for m in ("csr", "cfsr")},
+        "pool_start_s": _spread([r["pool_start_s"] for r in pool]),
     }
 
 
@@ -115,3 +152,6 @@ def print_compile(res: dict[str, Any]) -> None:
         print(f"  {m:6s} alone {c['median']:6.1f} CPU s, {len(row['kernels'])} kernels")
     for m, f in res["frame_cpu_ms_one_thread"].items():
         print(f"  {m} frame, one thread: {f['median']:.1f} ms CPU")
+    ps = res["pool_start_s"]
+    print(f"  pool of 2 processes, start to ready: {ps['median']:.2f} s "
+          f"({ps['min']:.2f}-{ps['max']:.2f})")
