@@ -9,8 +9,8 @@ gets the :class:`~cfsr.methods.registry.Output` back, in the order it asks for t
 
 Both users of the pool go through it, so both get the same numbers as one process:
 
-* the live worker (``cfsr_live.service.worker``) copies the window of its newest step out of its
-  streaming buffer into a free process's region and publishes the results in step order;
+* the live worker (``cfsr_live.service.frame_worker``) copies the window of its newest step out
+  of its streaming buffer into a free process's region and publishes the results in step order;
 * :func:`cfsr.offline.pool_outputs` (behind :func:`cfsr.reconstruct` and ``cfsr
   reconstruct``) cuts a recording's output steps into groups and runs each group in one
   process.

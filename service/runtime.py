@@ -36,7 +36,7 @@ from cfsr_live.service.status import (
     ring_status,
     source_report,
 )
-from cfsr_live.service.worker import WorkerSupervisor
+from cfsr_live.service.supervisor import WorkerSupervisor
 from cfsr_live.shm.ring import SpikeRing
 
 if TYPE_CHECKING:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import asyncio
 import os
 import struct
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -276,3 +278,20 @@ def test_mask_colours_and_names_are_checked(monkeypatch):
     with pytest.raises(ValueError, match="masks"):
         declared(*(f"m{i}" for i in range(schema.MAX_MASKS + 1)))()
     assert len(declared(*(f"m{i}" for i in range(schema.MAX_MASKS)))()) == schema.MAX_MASKS
+
+
+def test_web_process_does_not_load_the_worker():
+    """The web process supervises the worker through messages and shared counters: building
+    the app loads neither the worker's modules nor the reconstruction's pool (they load in the
+    spawned worker only)."""
+    code = (
+        "import sys\n"
+        "from cfsr_live.service.app import create_app\n"
+        "from cfsr_live.service.runtime import Runtime\n"
+        "from cfsr_live.service.supervisor import WorkerSupervisor\n"
+        "bad = ('cfsr_live.service.worker_loop', 'cfsr_live.service.frame_worker', 'cfsr.pool')\n"
+        "print(sorted(m for m in bad if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -18,8 +18,10 @@ from cfsr_live.driver.acquisition import Acquisition
 from cfsr_live.replay.device import ReplayDevice
 from cfsr_live.replay.pattern import pattern_recording
 from cfsr_live.service.config import WorkerConfig
+from cfsr_live.service.frame_worker import LATE_S
 from cfsr_live.service.frameslot import FrameSlot
-from cfsr_live.service.worker import LATE_S, WorkerSupervisor, pick_tier
+from cfsr_live.service.pacing import pick_tier
+from cfsr_live.service.supervisor import WorkerSupervisor
 from cfsr_live.shm.ring import SpikeRing
 
 H, W, N = 24, 32, 6000

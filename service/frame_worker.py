@@ -1,0 +1,583 @@
+"""The worker process's state: the ring reader, the streaming buffer, the pool that
+reconstructs, and the latest-frame slot it publishes to (:class:`FrameWorker`).
+
+The worker maps the spike ring and the latest-frame slot, feeds ring blocks into the single
+:class:`cfsr.StreamingReconstructor`, and publishes the newest reconstruction (8-bit image,
+coarse and fine masks, timings) at most ``max_fps`` times a second. It never waits for anyone:
+when it falls behind it skips the backlog it does not need (counted as ``worker_skip``), and if
+the ring overran it, the ring reader counts those frames (``ring_lost``). Its loop and commands
+are in :mod:`cfsr_live.service.worker_loop`.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import time
+from collections import deque
+from typing import Any, NamedTuple
+
+from cfsr.config import MethodConfig
+from cfsr.display import auto_gain, to_display
+from cfsr.layout import Layout
+from cfsr.methods.registry import get_method
+from cfsr.pool import FramePool, PoolError, TaskError
+from cfsr.streaming import StreamingReconstructor
+from cfsr.warmup import measured_compile
+from cfsr_live.driver.source import BlockFlags
+from cfsr_live.service.config import WorkerConfig
+from cfsr_live.service.frameslot import FrameSlot
+from cfsr_live.service.kernels import RECONSTRUCTION_NICE
+from cfsr_live.service.pacing import pick_tier, tiers_of
+from cfsr_live.service.status import CompileProgress
+from cfsr_live.service.worker_messages import RUNG_CODES, Compiling, ConfigAnswer
+from cfsr_live.shm.ring import SpikeRing
+
+__all__ = ["FALLBACK_AFTER_S", "LADDER", "LATE_S", "STAND_IN_FPS", "TASK_HANG_S", "FrameWorker"]
+
+
+class _Task(NamedTuple):
+    """A frame handed to the pool: its step, when its newest spike arrived, the tier, the
+    config version it was computed under, when and to which process it went, whether it
+    is that process's first frame of its method and tier (which may wait on the compiler),
+    the step clock its step counts on (:meth:`FrameWorker._restart_clock`), and whether it is a
+    rung of the ladder shown while the config's first frame compiles."""
+
+    step: int
+    arrival: float
+    quality: str
+    version: int
+    submitted: float
+    process: int
+    method: str
+    cold: bool
+    clock: int
+    rung: bool = False  # a stand-in of the ladder (CSR while CFSR compiles), not the config's
+
+
+#: the rung of the ladder shown while a method's first frame waits on its compile, computed
+#: by an idle pool process (TFP, the first rung, is computed by the worker itself)
+LADDER = {"cfsr": "csr"}
+#: most stand-in frames a second (TFP, CSR) while a first frame compiles: enough to see the
+#: scene move, and the CPU goes to the compile the user waits for
+STAND_IN_FPS = 5.0
+
+
+#: a frame whose newest spike arrived longer ago than this is not shown (counted late) when a
+#: newer frame of its config is computing
+LATE_S = 1.0
+#: seconds the first frame under a config may be pending before the worker shows frames of a
+#: ready method (TFP) meanwhile: on a first use that frame waits on numba's compiler
+FALLBACK_AFTER_S = 1.0
+#: a pool task pending longer than this, not counting the time its process spent compiling
+#: kernels (or waiting for another process's compile of them), is taken for a hang
+TASK_HANG_S = 120.0
+
+
+class FrameWorker:
+    """The worker process's state: the ring reader, the streaming buffer, and the pool of
+    processes that reconstruct (:class:`cfsr.pool.FramePool`).
+
+    The loop ingests ring blocks into the buffer, hands the newest computable step to an idle
+    pool process whenever ``max_fps`` allows, and publishes finished frames in step order:
+    a result older than one already shown is dropped (``dropped_order``), one whose spikes
+    arrived more than :data:`LATE_S` ago while a newer frame of its config computes, or
+    computed under a replaced config, too (``dropped_late``). With ``workers`` processes
+    several frames are computed at once, each on a different step, so the rate is up to
+    ``workers`` times one process's.
+
+    CFSR's ``quality = auto`` (the live default) picks a tier per frame: ``full`` while the
+    measured cost of a full frame lets the pool keep ``max_fps``, else as many ``full``
+    frames as the rate allows and ``fast`` ones between them.
+    """
+
+    def __init__(
+        self, slot_path: str, config: WorkerConfig, evt_q: Any, workers: int = 1,
+        threads: int = 1,
+    ) -> None:
+        self.slot = FrameSlot.attach(slot_path)
+        self.evt_q = evt_q
+        self.config = config
+        self.ring = None
+        self.reader = None
+        self.rec = None
+        self.layout = None
+        counters = self.slot.counters()
+        counters[:] = 0
+        # the record in shared memory (indexing a structured array gives a view): a counter
+        # is a field of the schema, so a misspelt name raises instead of reading 0
+        self.st = counters[0]
+        self.st["pid"] = os.getpid()
+        self.st["started"] = time.monotonic()
+        self._lost_base = self._overrun_base = self._torn_base = self._gaps_base = 0
+        self._skip_base = 0
+        self._next_out = 0.0
+        #: (end step, host time) of the blocks ingested, on the current step clock
+        self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
+        self._clock = 0  # how many times the step clock started again
+        self.slow_first = 0.0  # test hook (Inject "slow_first")
+        # not waiting for the processes to start: the heartbeat and the first frames of the
+        # loop do not wait on their imports
+        self.pool = FramePool(workers, threads, wait=False, nice=RECONSTRUCTION_NICE)
+        self.put("workers", self.pool.workers)
+        self.put("threads", self.pool.threads)
+        self._tasks: dict[int, _Task] = {}
+        self._compile_key: tuple[Any, ...] | None = None  # the compile last reported
+        #: (process, method) pairs that returned a frame: their kernels are loaded
+        self._warm: set[tuple[int, str]] = set()
+        self._tag = 0
+        self._tiers: dict[str, Any] = {}
+        self._reset_output()
+
+    def _reset_output(self) -> None:
+        """Forget what was submitted and shown under the previous config."""
+        self._last_submit: int | None = None
+        self._last_shown: int | None = None
+        self._first_since: float | None = None  # first task under this config submitted at
+        self._first_pending = True
+        self._ready: dict[int, tuple[_Task, Any, float]] = {}  # results waiting for older ones
+        self._fallback_next = 0.0
+        self._rung = 0  # the highest rung of the ladder shown for this config (RUNG_CODES)
+        self._ema: dict[str, float] = {}
+        self._credit = 0.0
+        self.put("fallback", 0.0)
+
+    def _restart_clock(self) -> None:
+        """The step clock started again (another source, or a camera that restarted its
+        counter): forget all that is keyed by the old clock's steps. Kept, the new frames
+        waited until the new clock passed the old one, for as long as the old source had
+        played (up to the arrival log's 13 s): dropped as late (their arrival looked up
+        among the old steps), not submitted (older than the last submitted step) or dropped
+        as out of order (older than the last shown). Frames still computing on the old clock
+        are dropped when they come back."""
+        self._clock += 1
+        self._arrival.clear()
+        self._last_submit = self._last_shown = None
+        if self._ready:
+            self.bump("dropped_late", len(self._ready))
+            self._ready.clear()
+
+    def _current(self, task: _Task) -> bool:
+        """Whether ``task`` was computed under the running config and step clock."""
+        return task.version == self.config.version and task.clock == self._clock
+
+    def bump(self, name: str, by: float = 1.0) -> None:
+        self.st[name] += by
+
+    def put(self, name: str, value: float) -> None:
+        self.st[name] = value
+
+    def close(self) -> None:
+        self.pool.close()
+
+    # -- configuration ------------------------------------------------------------------------
+    def attach(self, ring_path: str, layout: Layout) -> None:
+        if self.reader is not None:
+            self._lost_base += self.reader.lost_frames
+            self._skip_base += self.reader.skipped_frames
+            self._overrun_base += self.reader.overruns
+            self._torn_base += self.reader.torn
+            self.reader.close()
+        if self.ring is not None:
+            self.ring.close()
+        self.ring = SpikeRing.attach(ring_path)
+        self.layout = layout
+        self._restart_clock()  # a new ring is a new source: its steps count from its own start
+        self.reader = self.ring.reader(start="latest", register=self.config.deterministic, keep=1)
+        self._build()
+
+    def _build(self, cfg: WorkerConfig | None = None) -> None:
+        """Make the reconstructor run ``cfg`` (default: the current config), all or nothing.
+
+        The new state is built completely before it replaces the running one
+        (:meth:`StreamingReconstructor.set_method` is itself atomic; the buffer holds the
+        longest window of the config's tiers); on any failure this raises with the old
+        configuration and reconstructor untouched. On success the config becomes current and
+        its version is acknowledged to the supervisor.
+        """
+        cfg = self.config if cfg is None else cfg
+        tiers = tiers_of(cfg)
+        widest = max(tiers.values(), key=lambda m: sum(m.window))
+        if self.rec is None or self.rec.layout != self.layout:
+            rec = StreamingReconstructor(widest, self.layout, slack=1024)
+            if self.rec is not None:
+                self._gaps_base += self.rec.gaps
+            self.rec = rec
+        else:
+            self.rec.set_method(widest)
+        self.config = cfg
+        self._tiers = tiers
+        self._reset_output()
+        self.put("config_version", cfg.version)
+        self.evt_q.put(ConfigAnswer(cfg.version, applied=True))
+
+    def configure(self, cfg: WorkerConfig) -> None:
+        """Apply config ``cfg`` or reject it, keeping the old one.
+
+        Every version gets exactly one :class:`ConfigAnswer` on the event queue: applied, or
+        rejected with the reason (the running reconstruction goes on unchanged, so frames
+        keep coming).
+        """
+        if self.layout is None:  # not attached yet: the config is used when it is
+            self.config = cfg
+            return
+        try:
+            self._build(cfg)
+        except Exception as exc:  # noqa: BLE001 - any failure rejects this version only
+            reason = f"{type(exc).__name__}: {exc}"
+            self.evt_q.put(ConfigAnswer(cfg.version, applied=False, reason=reason))
+        else:
+            self._next_out = 0.0  # publish under the new config at once, not at the old pace
+
+    # -- main loop ------------------------------------------------------------------------------
+    def needed_frames(self) -> int:
+        rec = self.rec
+        return rec.before + rec.after + 1
+
+    def ingest(self) -> int:
+        """Move new ring blocks into the reconstructor; returns frames pushed."""
+        reader, rec, ring = self.reader, self.rec, self.ring
+        if reader is None or rec is None:
+            return 0
+        pushed = 0
+        if not self.config.deterministic:
+            need_blocks = -(-self.needed_frames() // ring.slot_frames) + 1
+            if reader.backlog > need_blocks + 1:
+                reader.skip_to_latest(need_blocks)  # counted in reader.skipped_frames
+        budget = time.monotonic() + 0.05
+        while True:
+            blk = reader.poll()
+            if blk is None:
+                break
+            if self._arrival and blk.index < self._arrival[-1][0]:
+                self._restart_clock()  # a step clock never goes back: it started again
+            if blk.flags & BlockFlags.DISCONTINUITY:
+                rec.reset(blk.index)
+            rec.push(blk.data, blk.index)
+            ok = reader.release(blk)
+            self.put("worker_skip_frames", self._skip_base + reader.skipped_frames)
+            self.put("ring_lost_frames", self._lost_base + reader.lost_frames)
+            self.put("ring_overruns", self._overrun_base + reader.overruns)
+            self.put("ring_torn", self._torn_base + reader.torn)
+            if not ok:
+                rec.reset(blk.index + blk.n_frames)  # the data we pushed was torn
+                continue
+            self.put("gaps", self._gaps_base + rec.gaps)
+            self._arrival.append((blk.index + blk.n_frames, blk.t_host))
+            pushed += blk.n_frames
+            if time.monotonic() > budget:
+                break
+        self.bump("steps_ingested", pushed)
+        return pushed
+
+    def _arrival_of(self, step: int) -> float:
+        for end, t in self._arrival:
+            if end > step:
+                return t
+        return self._arrival[-1][1] if self._arrival else time.monotonic()
+
+    def _quality(self) -> str:
+        """The tier of the next frame (:func:`pick_tier` on the measured costs)."""
+        if len(self._tiers) < 2:
+            return next(iter(self._tiers))
+        # seconds of pool time one frame may take for the pool to keep max_fps
+        budget_ms = 1e3 * self.pool.workers / self.config.max_fps
+        tier, self._credit = pick_tier(
+            self._ema.get("full"), self._ema.get("fast"), budget_ms, self._credit
+        )
+        return tier
+
+    def _compiling_first(self) -> tuple[_Task, Any] | None:
+        """The pending task of the config and its process's compile report, while the
+        config's first frame waits on a compile (or on another process's compile)."""
+        if not self._first_pending:
+            return None
+        for task in self._tasks.values():
+            if not task.rung and self._current(task):
+                beat = self.pool.compiling(task.process)
+                if beat is not None:
+                    return task, beat
+        return None
+
+    def _submit(self) -> bool:
+        """Hand the newest computable step to an idle pool process, if the pace allows;
+        while the config's first frame compiles, the next rung of the ladder instead."""
+        rec = self.rec
+        now = time.monotonic()
+        if rec is None or now < self._next_out or not self.pool.idle:
+            return False
+        t = rec.latest_step()
+        if t is None:
+            return False
+        if self._compiling_first() is not None:
+            return self._submit_rung(t, now)
+        if self._first_pending and any(self._current(k) and not k.rung
+                                       for k in self._tasks.values()):
+            # one first frame at a time: it may be compiling, and a second process would only
+            # wait on the same kernels (the ladder's rung can use it instead)
+            return False
+        if self._last_submit is not None and t <= self._last_submit:
+            return False
+        quality = self._quality()
+        cfg = self._tiers[quality]
+        before, after = cfg.window
+        a = max(rec.first_step, t - before)
+        b = min(rec.next_step, t + after + 1)
+        need = (b - a) * rec.layout.frame_bytes
+        resize = need > self.pool.region_bytes or (
+            self.pool.region_bytes > self.pool.base_bytes >= need  # a large window reverted
+        )
+        if resize:
+            if self.pool.pending:  # the regions change size once the pool is idle
+                return False
+            if need > self.pool.region_bytes:
+                self.pool.grow(need)
+            else:
+                self.pool.shrink()
+            self._warm.clear()  # new processes: their first frames load the kernels again
+        self._tag += 1
+        tag = self._tag
+        arrival = self._arrival_of(t + rec.after)
+        delay = 0.0
+        if self._first_pending:
+            if self._first_since is None:
+                self._first_since = now
+                self.put("first_frame_since", now)
+            delay = self.slow_first  # test hook: every process waits, as on a compile
+        k = self.pool.submit(tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)],
+                             delay=delay)
+        cold = (k, cfg.method) not in self._warm
+        self._tasks[tag] = _Task(
+            t, arrival, quality, self.config.version, now, k, cfg.method, cold, self._clock
+        )
+        self._last_submit = t
+        self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
+        return True
+
+    def _submit_rung(self, t: int, now: float) -> bool:
+        """While the config's first frame compiles, an idle process computes the method's
+        rung of the ladder (CSR for CFSR: its kernels compile in seconds) at the newest step,
+        one at a time, so the picture climbs from TFP to CSR before CFSR arrives."""
+        rung = LADDER.get(self.config.method.method)
+        rec = self.rec
+        if rung is None or rec is None or any(k.rung for k in self._tasks.values()):
+            return False
+        if self._last_shown is not None and t <= self._last_shown:
+            return False
+        cfg = _rung_config(rung)
+        before, after = cfg.window
+        if t + after >= rec.next_step:
+            t = rec.next_step - after - 1
+        a, b = max(rec.first_step, t - before), min(rec.next_step, t + after + 1)
+        if t < a or (b - a) * rec.layout.frame_bytes > self.pool.region_bytes:
+            return False
+        self._tag += 1
+        k = self.pool.submit(self._tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)])
+        self._tasks[self._tag] = _Task(
+            t, self._arrival_of(t + after), "full", self.config.version, now, k, rung,
+            (k, rung) not in self._warm, self._clock, rung=True,
+        )
+        self._next_out = max(now + 1.0 / min(self.config.max_fps, STAND_IN_FPS),
+                             time.monotonic())
+        return True
+
+    def _collect(self) -> bool:
+        """Publish the results that are in, in step order; True when one was shown.
+
+        A result whose older sibling (same config, earlier step) is still computing waits
+        for it in ``_ready`` (frames side by side finish in any order; showing the newer one
+        at once would throw the older one away), and goes out right after it.
+        """
+        while self._tasks:
+            try:
+                r = self.pool.collect(timeout=0)
+            except TaskError as exc:  # this frame failed; the process takes the next one
+                self._tasks.pop(exc.tag, None)
+                self._flush()
+                raise
+            if r is None:
+                break
+            task = self._tasks.pop(r.tag)
+            (t, out), ms = r.outputs[0], r.compute_ms[0]
+            if task.cold:  # its time holds the kernels' loading or compiling: not a frame's
+                self._warm.add((task.process, task.method))
+            if task.rung:
+                self._show_rung(task, t, out, ms)
+                continue
+            if not task.cold and ms > 0:
+                old = self._ema.get(task.quality)
+                self._ema[task.quality] = ms if old is None else 0.8 * old + 0.2 * ms
+            if not self._current(task):
+                self.bump("dropped_late")  # computed under a config or a clock since replaced
+                continue
+            self._ready[t] = (task, out, ms)
+        shown = self._flush()
+        self._check_hangs()
+        return shown
+
+    def _show_rung(self, task: _Task, t: int, out: Any, ms: float) -> None:
+        """Show a rung's frame while the config's first frame still waits (and it is newer
+        than what is shown); the ladder only climbs, so TFP stops once CSR is shown."""
+        if not (self._first_pending and self._current(task)):
+            return
+        if self._last_shown is not None and t <= self._last_shown:
+            return
+        self._rung = max(self._rung, RUNG_CODES[task.method])
+        self.put("fallback", float(self._rung))
+        self._publish(t, out, task.method, task.arrival, ms, timed=False)
+        self.bump("fallback_frames")
+
+    def _flush(self) -> bool:
+        """Show the waiting results that no older task of their config precedes."""
+        shown = False
+        while self._ready:
+            t = min(self._ready)
+            if any(self._current(k) and not k.rung and k.step < t
+                   for k in self._tasks.values()):
+                break
+            task, out, ms = self._ready.pop(t)
+            first, self._first_pending = self._first_pending, False
+            if first:  # shown however long it took: nothing newer of this config exists
+                self.slow_first = 0.0
+                self.put("first_frame_since", 0.0)
+                self.put("fallback", 0.0)
+            # the step order holds within one config: a new config's first frame is shown
+            # even at an earlier or equal step (a method that looks further ahead, or any
+            # change on a paused replay, whose data end has not moved)
+            if not first and self._last_shown is not None and t <= self._last_shown:
+                self.bump("dropped_order")
+                continue
+            # late only when something newer of this config is on its way to replace it: the
+            # newest frame there is is shown however old (dropping it leaves an older one up)
+            if (
+                not first
+                and time.monotonic() - task.arrival > LATE_S
+                and any(self._current(k) and not k.rung and k.step > t
+                        for k in self._tasks.values())
+            ):
+                self.bump("dropped_late")
+                continue
+            self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms,
+                          timed=not task.cold)
+            self.bump("q_" + task.quality)
+            shown = True
+        return shown
+
+    def _check_hangs(self) -> None:
+        """A task pending past :data:`TASK_HANG_S` while its process neither compiles nor
+        waits for a compile is a hung process: PoolError, so the worker exits and the
+        supervisor restarts it with a fresh pool. Time spent compiling is not counted (the
+        process's compile heartbeat, :meth:`FramePool.compiling`): a compile of minutes on a
+        busy machine is never killed, and a frame stuck anywhere else still is."""
+        now = time.monotonic()
+        for task in self._tasks.values():
+            if self.pool.compiling(task.process) is not None:
+                continue
+            since = max(task.submitted, self.pool.compile_ended(task.process))
+            if now - since > TASK_HANG_S:
+                raise PoolError(
+                    f"pool process {task.process} has computed step {task.step} for "
+                    f"{now - task.submitted:.0f} s ({now - since:.0f} s since it last "
+                    "compiled): taken for a hang"
+                )
+
+    def _fallback(self) -> bool:
+        """While the first frame under the config waits on numba's compiler (its process's
+        compile heartbeat says so), show TFP frames, computed here, so the image does not
+        freeze: the ladder's first rung, until a higher one (CSR) is shown. A first frame
+        that is merely slow (no compile) keeps the last frame of the chosen method."""
+        rec = self.rec
+        if (
+            rec is None
+            or not self._first_pending
+            or self._first_since is None
+            or self.config.method.method == "tfp"
+            or self._rung > RUNG_CODES["tfp"]
+            or self._compiling_first() is None
+        ):
+            return False
+        now = time.monotonic()
+        if now - self._first_since < FALLBACK_AFTER_S or now < self._fallback_next:
+            return False
+        t = rec.latest_step()
+        if t is None or (self._last_shown is not None and t <= self._last_shown):
+            return False
+        tfp = get_method("tfp")
+        fb = _rung_config("tfp")
+        before, after = fb.window
+        t0 = time.perf_counter()
+        out = tfp.run_window(
+            rec, max(rec.first_step, t - before), min(rec.next_step, t + after + 1), t,
+            fb.params,
+        )
+        ms = (time.perf_counter() - t0) * 1e3
+        self._rung = max(self._rung, RUNG_CODES["tfp"])
+        self.put("fallback", float(self._rung))
+        self._publish(t, out, "tfp", self._arrival_of(t), ms, timed=False)
+        self.bump("fallback_frames")
+        self._fallback_next = now + 1.0 / min(self.config.max_fps, STAND_IN_FPS)
+        return True
+
+    def _publish(
+        self, t: int, out: Any, method: str, arrival: float, compute_ms: float,
+        *, timed: bool = True,
+    ) -> None:
+        """Show frame ``t``; ``timed``: its compute and latency join the status's averages
+        (not a process's first frame of a method, whose time holds the kernels' loading)."""
+        gain = self.config.gain
+        g = float(gain) if gain else auto_gain(out.rate)
+        img = to_display(out.rate, g)
+        latency_ms = (time.monotonic() - arrival) * 1e3
+        self.slot.publish(
+            step=t,
+            image=img,
+            masks=out.masks,
+            method=method,
+            gain=g,
+            t_arrival=arrival,
+            compute_ms=compute_ms,
+            latency_ms=latency_ms,
+        )
+        self._last_shown = t
+        self.bump("frames_out")
+        if not timed:
+            return
+        a = 0.2
+        for name, v in (("compute_ms", compute_ms), ("latency_ms", latency_ms)):
+            old = self.st[name]
+            self.st[name] = v if old == 0 else (1 - a) * old + a * v
+
+    def _report_compile(self) -> None:
+        """Tell the supervisor what the config's first frame waits on (each change of
+        kernel, count or whole CPU second, and once when no compile holds it any more)."""
+        got = self._compiling_first()
+        key = None if got is None else (got[1].kernel, got[1].kernels, int(got[1].cpu_s))
+        if key == self._compile_key:
+            return
+        self._compile_key = key
+        progress = None
+        if got is not None:
+            task, beat = got
+            table = measured_compile().get("methods", {}).get(task.method, {})
+            progress = CompileProgress(
+                method=task.method, kernel=beat.kernel, waiting=beat.waiting,
+                kernels=beat.kernels, total=len(table.get("kernels", [])) or None,
+                cpu_s=beat.cpu_s, estimate_s=table.get("cpu_s"),
+            )
+        self.evt_q.put(Compiling(progress))
+
+    def maybe_output(self) -> bool:
+        """One round of output: collect and publish, submit the next step, or show a
+        fallback frame while the first one waits; True when something happened."""
+        shown = self._collect()
+        submitted = self._submit()
+        fell_back = self._fallback()
+        self._report_compile()
+        return shown or submitted or fell_back
+
+
+@functools.cache
+def _rung_config(method: str) -> Any:
+    """A rung of the ladder at its default parameters (TFP, the first: cheap, and the
+    first a warm-up compiles; CSR for CFSR)."""
+    return MethodConfig(method)
