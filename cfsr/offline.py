@@ -19,6 +19,7 @@ from cfsr.methods.registry import Output
 from cfsr.pool import FramePool, PoolResult, borrowed_pool
 from cfsr.spikes import SpikeRecording
 from cfsr.streaming import StreamingReconstructor
+from cfsr.warmup import measured_compile
 
 __all__ = ["carry_groups", "pool_outputs", "stream_reconstruct", "POOL_MIN_MS", "POOL_START_S"]
 
@@ -26,9 +27,10 @@ __all__ = ["carry_groups", "pool_outputs", "stream_reconstruct", "POOL_MIN_MS", 
 #: output (ms): below it, copying windows to the processes costs about what they save
 POOL_MIN_MS = 20.0
 #: what starting the pool costs before its first frame (s): spawning its processes, their
-#: imports and their kernels' loading from the cache; paid once per process (the pool is
-#: reused), so ``workers=None`` starts it only for work of at least twice this long
-POOL_START_S = 3.0
+#: imports and their kernels' loading from the cache, as ``cfsr bench --compile`` measured it
+#: (the package's compile table; 3 s where the table lacks it); paid once per process (the
+#: pool is reused), so ``workers=None`` starts it only for work of at least twice this long
+POOL_START_S = float(measured_compile().get("pool_start_s", 3.0))
 
 
 def _spans(
