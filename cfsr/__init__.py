@@ -5,6 +5,7 @@ per step (0..1); :func:`to_display` maps them to 0..255. This package imports no
 camera stack (pyusb, FastAPI) and never imports ``driver``, ``replay`` or ``service``.
 """
 
+from cfsr import methods  # the package, callable: cfsr.methods() describes every method
 from cfsr.api import reconstruct, reconstruct_outputs
 from cfsr.datfile import (
     DatWriter,
@@ -17,7 +18,7 @@ from cfsr.datfile import (
 )
 from cfsr.display import to_display
 from cfsr.layout import DEFAULT_LAYOUT, STEP_RATE_HZ, Layout
-from cfsr.methods import Output, get_method, methods
+from cfsr.methods import Output, get_method
 from cfsr.spikes import SpikeRecording, as_recording
 from cfsr.streaming import StreamingReconstructor
 

@@ -369,12 +369,12 @@ def carried_rows(
     rounds: int = 2,
 ) -> list[dict[str, Any]]:
     """Dense CFSR output (``count`` frames ``stride`` steps apart, one group of
-    :func:`cfsr.methods.cfsr_fine.carry_groups`, carried from frame to frame) against the same
+    :func:`cfsr.methods.cfsr.carry.carry_groups`, carried from frame to frame) against the same
     frames isolated (memo emptied before each): PSNR of both (whole, motion region), the
     difference, CPU ms per frame of both (median of ``rounds``) and the ratio isolated /
     carried."""
     from cfsr.display import to_display
-    from cfsr.methods.cfsr_fine import carry_groups
+    from cfsr.methods.cfsr.carry import carry_groups
     from cfsr.methods.registry import get_method, resolve_params
     from cfsr.simulate import simulate
     from cfsr.spikes import SpikeRecording

@@ -22,17 +22,18 @@ from cfsr.layout import Layout
 from cfsr.simulate import make_scene, simulate
 from cfsr.streaming import StreamingReconstructor
 
+#: (module of cfsr.methods.cfsr that calls it, name): the stages timed
 STAGES = (
-    "_history",
-    "static_kernel",
-    "dynamic_kernel",
-    "atsr_fuse",
-    "_mog_objects",
-    "_future_objects",
-    "fine_mask",
-    "still_pixels",
-    "pm_frames",
-    "patchmatch_fuse",
+    ("pipeline", "history_scan"),
+    ("history", "static_kernel"),
+    ("history", "dynamic_kernel"),
+    ("fusion", "atsr_fuse"),
+    ("fine_mask", "history_objects"),
+    ("fine_mask", "future_objects"),
+    ("fine_mask", "fine_mask"),
+    ("fine_mask", "still_pixels"),
+    ("refinement", "pm_frames"),
+    ("refinement", "patchmatch_fuse"),
 )
 
 
@@ -57,7 +58,6 @@ def main() -> None:
     args = ap.parse_args()
     if not args.no_keep_heap:
         keep_freed_memory()
-    cf = importlib.import_module("cfsr.methods.cfsr_fine")
     spent: dict[str, float] = collections.defaultdict(float)
 
     def timed(name, fn):
@@ -70,8 +70,9 @@ def main() -> None:
 
         return run
 
-    for name in STAGES:
-        setattr(cf, name, timed(name, getattr(cf, name)))
+    for module, name in STAGES:
+        mod = importlib.import_module(f"cfsr.methods.cfsr.{module}")
+        setattr(mod, name, timed(name, getattr(mod, name)))
     opts = {} if args.radius is None else {"radius": args.radius}
     scene = make_scene(args.scene, height=250, width=400, **opts)
     sim = simulate(scene, 4096, seed=0)
@@ -90,7 +91,7 @@ def main() -> None:
         sr.compute(t)
     total = (time.perf_counter() - t0) / args.frames
     print(f"{args.scene}: {total * 1e3:.1f} ms per frame ({1 / total:.1f} fps)")
-    for name in STAGES:
+    for _, name in STAGES:
         if name in spent:
             print(f"  {name:18s} {spent[name] / args.frames * 1e3:7.1f} ms")
 

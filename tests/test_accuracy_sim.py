@@ -97,8 +97,8 @@ def test_fine_mask_finds_the_motion(table, scene):
 
 
 def test_fine_mask_iou_on_the_fan(table):
-    # the still pixels (cfsr.methods.still) take the background between the blades out of
-    # the fine mask: 0.46 before them, 0.93 with them (docs/methods.md, "Still pixels")
+    # the still pixels (cfsr.methods.cfsr.still_pixels) take the background between the blades
+    # out of the fine mask: 0.46 before them, 0.93 with them (docs/methods.md, "Still pixels")
     assert table[("cfsr", "fan")]["iou_fine"] >= 0.8
 
 

@@ -10,8 +10,10 @@ import pytest
 import cfsr
 from cfsr._words import PackedWindow
 from cfsr.display import to_display
-from cfsr.methods import cfsr_fine, get_method, pmframes
-from cfsr.methods.pmframes import TILE, pm_frames
+from cfsr.methods import get_method
+from cfsr.methods.cfsr import patchmatch_frames as pmframes
+from cfsr.methods.cfsr import refinement
+from cfsr.methods.cfsr.patchmatch_frames import TILE, pm_frames
 from cfsr.methods.registry import resolve_params
 from cfsr.metrics import psnr
 from cfsr.simulate import simulate
@@ -93,9 +95,9 @@ def test_outputs_a_multiple_of_pm_step_apart_share_frames_exactly(disk, monkeypa
         sr = StreamingReconstructor("cfsr", rec.layout, slack=STEPS)
         sr.push(rec.packed(0, STEPS), 0)
         if not share:  # the same group, every frame computed
-            plain = cfsr_fine.pm_frames
+            plain = refinement.pm_frames
             monkeypatch.setattr(
-                cfsr_fine,
+                refinement,
                 "pm_frames",
                 lambda *a, bank=None, shift=0, **k: plain(*a, **k),
             )

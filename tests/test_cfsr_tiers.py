@@ -9,13 +9,9 @@ import cfsr
 from cfsr.config import MethodConfig
 from cfsr.display import to_display
 from cfsr.methods import get_method
-from cfsr.methods.cfsr_fine import (
-    QUALITY_TIERS,
-    carry_groups,
-    cfsr_window,
-    effective_params,
-    fast_config,
-)
+from cfsr.methods.cfsr.carry import carry_groups
+from cfsr.methods.cfsr.pipeline import cfsr_window
+from cfsr.methods.cfsr.tiers import QUALITY_TIERS, effective_params, fast_config
 from cfsr.methods.registry import resolve_params
 from cfsr.metrics import psnr
 from cfsr.simulate import simulate
@@ -152,17 +148,17 @@ def test_groups_give_the_same_frames_in_any_split(scenes):
 
 
 def test_a_carried_output_scans_only_its_new_history_frames(scenes, monkeypatch):
-    from cfsr.methods import cfsr_fine
+    from cfsr.methods.cfsr import history
     from cfsr.streaming import StreamingReconstructor
 
     scanned = []  # history frames (and the span at t) each scan computes
-    kernel = cfsr_fine.static_kernel
+    kernel = history.static_kernel
 
     def spy(src, union, spans, *rest):
         scanned.append(len(spans.cents))
         return kernel(src, union, spans, *rest)
 
-    monkeypatch.setattr(cfsr_fine, "static_kernel", spy)
+    monkeypatch.setattr(history, "static_kernel", spy)
     rec, *_ = scenes["disk"]
     sr = StreamingReconstructor("cfsr", rec.layout, slack=STEPS)
     sr.push(rec.packed(0, STEPS), 0)

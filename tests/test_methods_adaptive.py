@@ -1,6 +1,6 @@
 """CFSR's "skip what the scene does not need" (``adaptive``) and its fused per-pixel scans.
 
-* The fused history scan of :mod:`cfsr.methods.cfsr_fine` gives exactly the numbers of the
+* The fused history scan of :mod:`cfsr.methods.cfsr.pipeline` gives exactly the numbers of the
   stand-alone kernels it replaces (coarse distinction, TFI, TFP, DAISI), on random windows with
   clipped ranges (the PatchMatch frames' TFI and TFA: tests/test_pmframes.py).
 * MOG run only where the history varies by phi0 or more finds the same objects.
@@ -17,10 +17,14 @@ import pytest
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods import cfsr_fine as cf
-from cfsr.methods.csr import csr_frames, span_estimator, static_length
-from cfsr.methods.daisi import daisi_strength
-from cfsr.methods.pmframes import TILE, pm_frames, pm_tiles
+from cfsr.methods.cfsr import history
+from cfsr.methods.cfsr.coarse import csr_frames, span_estimator, static_length
+from cfsr.methods.cfsr.daisi import daisi_strength
+from cfsr.methods.cfsr.fine_mask import fine_mask
+from cfsr.methods.cfsr.history import history_scan, tfi_at
+from cfsr.methods.cfsr.mog import history_objects
+from cfsr.methods.cfsr.mog_two_sided import SharpRate
+from cfsr.methods.cfsr.patchmatch_frames import TILE, pm_frames, pm_tiles
 from cfsr.methods.registry import get_method, resolve_params
 from cfsr.methods.tfi import tfi_rate
 from cfsr.methods.tfp import static_rate, tfp_rate
@@ -32,7 +36,7 @@ def _params(**kw):
 
 def _tfi_at_t(hist, src, c, p):
     """The TFI at t of a history scan: its own when its second pass ran, else computed."""
-    return cf._tfi_at(src, c, p["max_isi"]) if hist.tfi is None else hist.tfi
+    return tfi_at(src, c, p["max_isi"]) if hist.tfi is None else hist.tfi
 
 
 def _random_window(rng, n, h=9, w=13):
@@ -62,7 +66,7 @@ def test_history_scan_equals_stand_alone_kernels(trial):
     )
     c = int(rng.integers(0, n))
     src = PackedWindow.from_frames(s)
-    got = cf._history(src, c, p)
+    got = history_scan(src, c, p)
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     cs = [x for x in cs if x >= 0]
     # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
@@ -91,18 +95,18 @@ def test_mog_only_where_the_history_varies_finds_the_same_objects():
     u8[-1, 10:18, 30:41] = 250  # an object appears
     u8[4:8, 30:35, 2:9] = 5  # a passing shadow in the history
     p = _params()
-    full = cf._mog_objects(u8, 20.0, False, p, 12)
-    fast = cf._mog_objects(u8, 20.0, True, p, 12)
+    full = history_objects(u8, 20.0, False, p, 12)
+    fast = history_objects(u8, 20.0, True, p, 12)
     np.testing.assert_array_equal(fast, full)
     assert full[10:18, 30:41].all()
     still = np.repeat(u8[:1], 12, axis=0)
-    assert not cf._mog_objects(still, 20.0, True, p, 12).any()
+    assert not history_objects(still, 20.0, True, p, 12).any()
     # the two-sided test (f: a sharp rate at t, not a history frame) on the varying pixels
     # gathered into one row finds what MOG on the whole frame finds
     rate = rng.random((40, 60)).astype(np.float32)
-    sharp = cf._Sharp(rate, np.full((40, 60), 4, np.int32), u8[-1] / np.float32(255), 16)
-    full = cf._mog_objects(u8, 20.0, False, p, 12, sharp, 1.0)
-    fast = cf._mog_objects(u8, 20.0, True, p, 12, sharp, 1.0)
+    sharp = SharpRate(rate, np.full((40, 60), 4, np.int32), u8[-1] / np.float32(255), 16)
+    full = history_objects(u8, 20.0, False, p, 12, sharp, 1.0)
+    fast = history_objects(u8, 20.0, True, p, 12, sharp, 1.0)
     np.testing.assert_array_equal(fast, full)
     assert full.any() and not full.all()
 
@@ -207,8 +211,8 @@ def test_static_tiles_take_their_frame_at_t_as_history_and_no_daisi():
     c = 700
     active = np.zeros((64, 96), bool)
     active[8:56, 20:76] = True
-    whole = cf._history(src, c, p)
-    tiled = cf._history(src, c, p, active)
+    whole = history_scan(src, c, p)
+    tiled = history_scan(src, c, p, active)
     np.testing.assert_array_equal(tiled.tfp, whole.tfp)
     np.testing.assert_array_equal(tiled.daisi[active], whole.daisi[active])
     assert not tiled.daisi[~active].any() and whole.daisi[~active].any()
@@ -263,9 +267,9 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
         raise AssertionError("the second pass ran on a static window")
 
     with monkeypatch.context() as mp:
-        mp.setattr(cf, "dynamic_kernel", second_pass)
+        mp.setattr(history, "dynamic_kernel", second_pass)
         src = PackedWindow.from_frames(s)
-        got = cf._history(src, c, p)
+        got = history_scan(src, c, p)
     assert not got.coarse.any()
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
@@ -335,8 +339,8 @@ def test_fine_mask_on_the_cues_bounding_box_equals_the_whole_frame(trial):
         cues[int(rng.integers(0, 3))] |= (d <= r * r) & (d >= (r // 2) ** 2)
     cues[2] |= rng.random((h, w)) < 0.002
     kw = {"close_size": (0, 5, 9)[trial % 3], "min_area": (1, 16)[trial % 2], "dilate": trial % 3}
-    got = cf.fine_mask(*cues, **kw)
-    from cfsr.methods.masks import _regularise_crop
+    got = fine_mask(*cues, **kw)
+    from cfsr.methods.cfsr.fine_mask import _regularise_crop
 
     want = _regularise_crop(
         cues[0] | cues[1] | cues[2], kw["close_size"], kw["min_area"], kw["dilate"]

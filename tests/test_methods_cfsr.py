@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 import cfsr
-from cfsr.methods.atsr import atsr_alpha, atsr_fuse, atsr_fuse_isi
-from cfsr.methods.cfsr_fine import fine_mask
-from cfsr.methods.daisi import daisi_edges, daisi_strength
-from cfsr.methods.distinction import coarse_masks, distinct_isi_counts
-from cfsr.methods.mog import mog_background, mog_objects, to_u8
-from cfsr.methods.patchmatch import nnf_multi, patchmatch_fuse
+from cfsr.methods.cfsr.atsr import atsr_alpha, atsr_fuse, atsr_fuse_isi
+from cfsr.methods.cfsr.daisi import daisi_edges, daisi_strength
+from cfsr.methods.cfsr.distinction import coarse_masks, distinct_isi_counts
+from cfsr.methods.cfsr.fine_mask import fine_mask
+from cfsr.methods.cfsr.mog import mog_background, mog_objects, to_u8
+from cfsr.methods.cfsr.patchmatch import nnf_multi, patchmatch_fuse
 
 
 def if_spikes(intensity, steps, *, gain=0.5, v0=None, seed=0):
@@ -368,7 +368,8 @@ def test_future_background_splits_ghosts_from_objects():
     """Eq. 9 against the background after t (``mog_sides = both``): a pixel a mover left
     before t matches it (a ghost), a pixel the mover covers at t does not."""
     from cfsr._words import PackedWindow
-    from cfsr.methods.cfsr_fine import CfsrSettings, _future_objects, _Sharp
+    from cfsr.methods.cfsr.mog_two_sided import SharpRate, future_objects
+    from cfsr.methods.cfsr.settings import CfsrSettings
     from cfsr.methods.registry import get_method, resolve_params
 
     n, c = 1000, 600
@@ -377,13 +378,13 @@ def test_future_background_splits_ghosts_from_objects():
     inten[c - 20 : c + 20, 0, 1] = 0.8  # covered at t, background again 20 steps later
     src = PackedWindow.from_frames(if_spikes(inten, n, v0=0.5))
     rate = np.array([[0.1, 0.4]], np.float32)  # rate at t: 51 and 204 levels at gain 0.5
-    sharp = _Sharp(rate, np.ones((1, 2), np.int32), rate, 16)
+    sharp = SharpRate(rate, np.ones((1, 2), np.int32), rate, 16)
     p = CfsrSettings.of(resolve_params(get_method("cfsr")))
     for adaptive in (True, False):
-        keep = _future_objects(src, c, np.ones((1, 2), bool), sharp, 0.5, 10.0, adaptive, p, 12)
+        keep = future_objects(src, c, np.ones((1, 2), bool), sharp, 0.5, 10.0, adaptive, p, 12)
         assert keep.tolist() == [[False, True]]
         # a pixel that is no candidate stays out
-        keep = _future_objects(src, c, np.array([[False, True]]), sharp, 0.5, 10.0, adaptive, p, 12)
+        keep = future_objects(src, c, np.array([[False, True]]), sharp, 0.5, 10.0, adaptive, p, 12)
         assert keep.tolist() == [[False, True]]
 
 
@@ -474,7 +475,8 @@ def test_every_method_reads_typed_settings_holding_exactly_its_parameters():
 
 
 def test_cfsr_settings_take_the_quality_tier():
-    from cfsr.methods.cfsr_fine import QUALITY_TIERS, CfsrSettings, effective_params
+    from cfsr.methods.cfsr.settings import CfsrSettings
+    from cfsr.methods.cfsr.tiers import QUALITY_TIERS, effective_params
     from cfsr.methods.registry import get_method, resolve_params
 
     p = resolve_params(get_method("cfsr"), {"quality": "fast", "pm_radius": 12})
@@ -486,7 +488,8 @@ def test_cfsr_settings_take_the_quality_tier():
 
 
 def test_pm_offsets_near_then_far_and_the_window_reaches_the_last():
-    from cfsr.methods.cfsr_fine import cfsr_window, pm_offsets
+    from cfsr.methods.cfsr.pipeline import cfsr_window
+    from cfsr.methods.cfsr.settings import pm_offsets
     from cfsr.methods.registry import get_method, resolve_params
 
     m = get_method("cfsr")

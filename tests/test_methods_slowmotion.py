@@ -1,4 +1,4 @@
-"""Windows as long as the motion allows (cfsr.methods.slowmotion) and CFSR's use of them."""
+"""Windows as long as the motion allows (cfsr.methods.cfsr.slow_motion) and CFSR's use of them."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods.slowmotion import HALVES, SLOW_PARAMS, slow_class, slow_fuse, slow_rates
+from cfsr.methods.cfsr.slow_motion import HALVES, SLOW_PARAMS, slow_class, slow_fuse, slow_rates
 from cfsr.simulate import make_scene, simulate
 
 H, W = 48, 64
@@ -236,7 +236,7 @@ def test_slow_class_pays_where_the_fine_region_moves_slowly(scene, opts):
 
 
 def test_paper_presets_run_without_the_stage():
-    from cfsr.methods.cfsr_fine import FINE_PRESETS
+    from cfsr.methods.cfsr.params import FINE_PRESETS
 
     assert all(pr["slow_reach"] == 0 for pr in FINE_PRESETS.values())
     scene = make_scene("vibrate", height=H, width=W)

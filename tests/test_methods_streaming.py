@@ -107,7 +107,7 @@ def test_csr_packed_path_equals_unpacked(params):
     """The packed CSR path (used by the library and the live worker) equals csr_frames."""
     from cfsr._bits import pack_frames
     from cfsr.layout import Layout
-    from cfsr.methods.csr import csr_frame_packed, csr_frames
+    from cfsr.methods.cfsr.coarse import csr_frame_packed, csr_frames
     from cfsr.methods.registry import get_method, resolve_params
 
     rng = np.random.default_rng(7)

@@ -12,7 +12,7 @@ import numba
 import numpy as np
 import pytest
 
-from cfsr.methods.patchmatch import nnf_independent, nnf_multi, nnf_temporal, patchmatch_fuse
+from cfsr.methods.cfsr.patchmatch import nnf_independent, nnf_multi, nnf_temporal, patchmatch_fuse
 
 
 def _texture(h, w, seed=0):
@@ -163,7 +163,7 @@ def test_nnf_multi_dispatches_to_the_two_entry_points():
 def test_the_temporal_search_reads_padded_guides_as_it_reads_its_own_copy():
     # CFSR writes its guides straight into the buffer the search reads (padded_guides,
     # finish_padding): the matches must be the ones of the search's own padded copy
-    from cfsr.methods.patchmatch import finish_padding, padded_guides
+    from cfsr.methods.cfsr.patchmatch import finish_padding, padded_guides
 
     rng = np.random.default_rng(11)
     n, h, w = 5, 37, 53
@@ -225,7 +225,7 @@ def test_a_patch_that_reads_nan_is_never_a_match(patch, temporal):
 def test_fusion_of_the_wanted_pixels_only_gives_their_full_fusion_values():
     # CFSR matches the still pixels it leaves out (they carry the propagation) but uses
     # only the other pixels' averages: those must be the averages of the full fusion
-    from cfsr.methods.patchmatch import fuse_matches
+    from cfsr.methods.cfsr.patchmatch import fuse_matches
 
     steps = _steps(count=4)
     ref, tg = _moving(steps, v=(0.3, -0.2), seed=2)

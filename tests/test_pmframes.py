@@ -1,4 +1,5 @@
-"""The PatchMatch stage's frames (:mod:`cfsr.methods.pmframes`) against the stand-alone rules.
+"""The PatchMatch stage's frames (:mod:`cfsr.methods.cfsr.patchmatch_frames`) against the
+stand-alone rules.
 
 * ``pm_frames`` gives exactly the TFI rates of :func:`cfsr.methods.tfi.tfi_rates` and the TFA
   rates of :func:`cfsr.methods.tfa.adaptive_rates` (guide before smoothing), on random windows
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 
 from cfsr._words import PackedWindow
-from cfsr.methods.pmframes import pm_frames
+from cfsr.methods.cfsr.patchmatch_frames import pm_frames
 from cfsr.methods.registry import get_method, resolve_params
 from cfsr.methods.tfa import adaptive_rates, grow_span
 from cfsr.methods.tfi import tfi_rates
@@ -166,7 +167,7 @@ def test_grow_span_equals_growing_one_interval_at_a_time():
 
 
 def _blur_in_child(q) -> None:
-    from cfsr.methods.pmframes import _blur_pool
+    from cfsr.methods.cfsr.patchmatch_frames import _blur_pool
 
     q.put(_blur_pool().submit(lambda: 41 + 1).result(timeout=20))
 
@@ -180,7 +181,7 @@ def test_blur_threads_work_in_a_forked_child():
     do not survive the fork, and jobs on the inherited pool would never run)."""
     import multiprocessing as mp
 
-    from cfsr.methods.pmframes import _blur_pool
+    from cfsr.methods.cfsr.patchmatch_frames import _blur_pool
 
     assert _blur_pool().submit(lambda: 1).result(timeout=20) == 1  # the parent's threads exist
     ctx = mp.get_context("fork")

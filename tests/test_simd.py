@@ -73,7 +73,7 @@ def test_intrinsic_and_numba_twin_agree_exactly(seed):
 def test_temporal_schedule_is_the_same_with_the_numba_twin(monkeypatch):
     import cv2
 
-    from cfsr.methods.patchmatch import nnf_temporal
+    from cfsr.methods.cfsr.patchmatch import nnf_temporal
 
     rng = np.random.default_rng(11)
     big = cv2.GaussianBlur(rng.random((110, 140)).astype(np.float32), (0, 0), 1.2)

@@ -12,8 +12,8 @@ from livehelpers import PACKED_LAYOUTS
 from cfsr import Layout
 from cfsr._bits import pack_frames
 from cfsr._words import PackedWindow
+from cfsr.methods.cfsr.static_gate import span_isi_rate
 from cfsr.methods.registry import get_method, resolve_params
-from cfsr.methods.staticgate import span_isi_rate
 from cfsr.methods.tfi import tfi_rate
 from cfsr.methods.tfp import (
     isi_span_rate,

@@ -1,4 +1,4 @@
-"""The static gate (:mod:`cfsr.methods.staticgate`): a window whose counts did not change is
+"""The static gate (:mod:`cfsr.methods.cfsr.static_gate`): a window whose counts did not change is
 CFSR's TFP at once; anything that moves, or a gate switched off, takes the whole pipeline."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import cfsr
 from cfsr._bits import pack_frames, unpack_layout
 from cfsr._words import PackedWindow
 from cfsr.layout import Layout
-from cfsr.methods import cfsr_fine as cf
-from cfsr.methods.staticgate import span_counts, static_gate
+from cfsr.methods.cfsr import pipeline
+from cfsr.methods.cfsr.static_gate import span_counts, static_gate
 from cfsr.methods.tfp import count_spikes, static_rate, tfp_rate
 
 
@@ -85,7 +85,7 @@ def test_cfsr_takes_the_gate_on_a_static_window_and_equals_the_full_pipeline(mon
         raise AssertionError("the coarse-to-fine stages ran on a gated window")
 
     with monkeypatch.context() as mp:
-        mp.setattr(cf, "_history", no_history)
+        mp.setattr(pipeline, "history_scan", no_history)
         got, mg = cfsr.reconstruct(s, "cfsr", [t], return_masks=True)
     np.testing.assert_array_equal(got, full)
     # the default estimator over its default span, 160 steps centred on t
@@ -110,13 +110,13 @@ def test_a_moving_scene_or_a_gate_switched_off_takes_the_whole_pipeline(monkeypa
     from cfsr.simulate import simulate
 
     calls = []
-    history = cf._history
+    history = pipeline.history_scan
 
     def counted(*args, **kw):
         calls.append(1)
         return history(*args, **kw)
 
-    monkeypatch.setattr(cf, "_history", counted)
+    monkeypatch.setattr(pipeline, "history_scan", counted)
     sim = simulate("disk", 900, seed=0, height=60, width=80)
     cfsr.reconstruct(sim.spikes, "cfsr", [700])
     assert calls == [1]
@@ -138,7 +138,7 @@ def test_the_streaming_window_holds_the_gates_spans_with_a_short_history(monkeyp
     def no_history(*args, **kw):
         raise AssertionError("the coarse-to-fine stages ran on a gated window")
 
-    monkeypatch.setattr(cf, "_history", no_history)
+    monkeypatch.setattr(pipeline, "history_scan", no_history)
     out = sr.compute(sr.latest_step())
     assert not out.masks["fine"].any()
 
@@ -169,7 +169,7 @@ def test_the_early_exit_gate_decides_as_the_two_counts_do_on_a_camera_frame(wher
 def test_the_gate_per_tile_marks_a_changed_tile_and_its_neighbours(flipud, fliplr):
     # one pixel changes by three spikes: its 16 x 16 tile and the tiles around it are active,
     # the rest of the frame is not (the gate per tile sees what the whole-frame gate sees)
-    from cfsr.methods.staticgate import active_tiles
+    from cfsr.methods.cfsr.static_gate import active_tiles
 
     lay = Layout(100, 70, flipud=flipud, fliplr=fliplr)
     rate = np.random.default_rng(8).uniform(0.01, 0.6, (70, 100))

@@ -1,4 +1,5 @@
-"""The steady-interval distinction and static check (cfsr.methods.steady, issue 13)."""
+"""The steady-interval distinction and static check (cfsr.methods.cfsr.steady_distinction, issue
+13)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ from scipy import ndimage as ndi
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods.masks import _fill_holes, regularise
-from cfsr.methods.steady import (
+from cfsr.methods.cfsr.fine_mask import _fill_holes, regularise
+from cfsr.methods.cfsr.steady_distinction import (
     check_static,
     clipped_median,
     noise_level,

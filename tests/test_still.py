@@ -1,4 +1,5 @@
-"""Still pixels (cfsr.methods.still): the proof that a pixel is background at t, and how the
+"""Still pixels (cfsr.methods.cfsr.still_pixels): the proof that a pixel is background at t, and
+how the
 fine mask uses it."""
 
 from __future__ import annotations
@@ -7,8 +8,8 @@ import numpy as np
 import pytest
 
 import cfsr  # noqa: F401  (registers the methods)
-from cfsr.methods.masks import fine_mask
-from cfsr.methods.still import still_pixel
+from cfsr.methods.cfsr.fine_mask import fine_mask
+from cfsr.methods.cfsr.still_pixels import still_pixel
 
 
 def _fire(rates: np.ndarray, phase: float) -> np.ndarray:
@@ -108,7 +109,7 @@ def test_fine_mask_leaves_still_pixels_out_and_does_not_grow_into_them():
 
 def test_still_pixels_on_a_window_match_the_pixel_rule():
     from cfsr._words import PackedWindow
-    from cfsr.methods.still import still_pixels
+    from cfsr.methods.cfsr.still_pixels import still_pixels
 
     rng = np.random.default_rng(3)
     n, h, w = 761, 6, 70
@@ -135,7 +136,8 @@ def test_still_pixels_on_a_window_match_the_pixel_rule():
 
 
 def test_the_paper_presets_have_no_still_pixels():
-    from cfsr.methods.cfsr_fine import FINE_PARAMS, FINE_PRESETS, cfsr_window
+    from cfsr.methods.cfsr.params import FINE_PARAMS, FINE_PRESETS
+    from cfsr.methods.cfsr.pipeline import cfsr_window
     from cfsr.methods.registry import get_method, resolve_params
 
     assert FINE_PRESETS["paper"]["still_reach"] == 0

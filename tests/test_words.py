@@ -84,7 +84,7 @@ def test_row_words_give_each_pixels_spike_times(layout, lo, hi, x0, x1):
 
 @pytest.mark.parametrize("trial", range(6))
 def test_distinct_counts_from_packed_words_equal_the_unpacked_kernel(trial):
-    from cfsr.methods.distinction import distinct_isi_counts, distinct_isi_counts_packed
+    from cfsr.methods.cfsr.distinction import distinct_isi_counts, distinct_isi_counts_packed
 
     rng = np.random.default_rng(50 + trial)
     layout = Layout(72, 5, flipud=bool(trial % 2), fliplr=trial == 3, head_cols=8 * (trial == 4))
