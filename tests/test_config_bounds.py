@@ -1,7 +1,7 @@
 """Bad configuration requests never take the service down (issue 12).
 
 * every method parameter has a documented range, checked once at the boundary
-  (:meth:`cfsr.methods.registry.Param.coerce`), with the window-like ones bounded by what the
+  (:meth:`cfsr.methods.registry.Param.check`), with the window-like ones bounded by what the
   reconstructor's ring may hold;
 * NaN and Infinity are refused everywhere (a 422 naming them, never a 500);
 * ``PUT /api/config`` answers with the worker's verdict: a configuration the worker cannot
@@ -232,6 +232,8 @@ def test_config_the_worker_rejects_is_422_and_not_stored(service, monkeypatch):
         return {**{k: p.default for k, p in method.params.items()}, **(params or {})}
 
     monkeypatch.setattr(registry, "resolve_params", lenient)
+    # and the router's strict check (Param.check) with it
+    monkeypatch.setattr(registry.Param, "check", lambda self, value, *a, **k: value)
     r = client.put("/api/config", json={"params": {"window": 1_000_000_000}})
     monkeypatch.undo()
     assert r.status_code == 422, r.text

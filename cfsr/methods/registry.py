@@ -61,7 +61,7 @@ class Param:
 
     Every numeric parameter has a closed range ``[minimum, maximum]`` (in ``unit``) and every
     text parameter a list of ``choices``: a value from outside (CLI, HTTP, file) is checked
-    against them once, in :meth:`coerce`, so no method ever sees a value it was not built for
+    against them once, in :meth:`check`, so no method ever sees a value it was not built for
     (a window of 10^9 steps, a NaN threshold). The range is part of the method's description
     (:func:`methods`, ``cfsr methods``, ``GET /api/methods``).
     """
@@ -112,14 +112,19 @@ class Param:
         unit = f" {self.unit}" if self.unit else ""
         return f"{_num(self.minimum)}..{_num(self.maximum)}{unit}"
 
-    def coerce(self, name: str, value: Any) -> Any:
-        """Convert a CLI/JSON value to the default's type and check it is in range.
+    def check(self, value: Any, strict: bool = True, *, name: str = "value") -> Any:
+        """``value`` as this parameter's type, checked against its range or choices: the one
+        validation of a value from outside (the API, the CLI, a library call).
 
-        Raises ValueError naming the parameter, the value and the accepted range. Numbers
-        must be finite: NaN compares false with every bound, so it is refused first.
+        ``strict``: the value's own type must be the parameter's, as JSON gives it (the API):
+        a number for a numeric parameter (``true`` and ``"32"`` are not), text among the
+        choices, ``true``/``false`` for a switch. Not strict (the CLI, whose values are
+        text): ``"32"``, ``"yes"`` and the like are converted first. Raises ValueError naming
+        the parameter (``name``), the value and the accepted range. Numbers must be finite:
+        NaN compares false with every bound, so it is refused first.
         """
         kind = type(self.default)
-        v = _convert(kind, value)
+        v = _BAD if strict and not _own_type(kind, value) else _convert(kind, value)
         if v is _BAD:
             raise ValueError(
                 f"parameter {name}={_show(value)}: expected {kind.__name__} in {self.range_text}"
@@ -141,6 +146,18 @@ class Param:
                 f"(range {self.range_text})"
             )
         return v
+
+
+def _own_type(kind: type, value: Any) -> bool:
+    """Whether ``value`` has the JSON type of a ``kind`` parameter (strict :meth:`Param.check`):
+    a boolean for a switch, a number (not a boolean) for a numeric one, text for a choice."""
+    if kind is bool:
+        return isinstance(value, bool | np.bool_)
+    if _is_number(kind):
+        return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+            value, bool | np.bool_
+        )
+    return isinstance(value, str)
 
 
 def _show(value: Any) -> str:
@@ -388,11 +405,17 @@ def methods() -> dict[str, dict[str, Any]]:
 
 
 def resolve_params(
-    method: Method, params: Mapping[str, Any] | None = None, preset: str | None = None
+    method: Method,
+    params: Mapping[str, Any] | None = None,
+    preset: str | None = None,
+    *,
+    strict: bool = False,
 ) -> dict[str, Any]:
     """Defaults, then the preset, then explicit values; unknown names are an error.
 
-    Each value is checked against its parameter's range (:meth:`Param.coerce`), then the
+    Each value is checked against its parameter's range (:meth:`Param.check`; ``strict``: its
+    type must be the parameter's own, as the API asks; otherwise text such as the CLI's is
+    converted), then the
     combination against the window limit (:attr:`Method.max_span` steps around t): several
     parameters in range can still add up to a window no ring holds (CFSR's history reaches
     ``mog_frames * mog_stride`` steps back). Raises ValueError naming what is wrong.
@@ -411,7 +434,7 @@ def resolve_params(
                 f"method {method.name!r} has no parameter {k!r}; "
                 f"parameters: {', '.join(method.params) or 'none'}"
             )
-        out[k] = method.params[k].coerce(k, v)
+        out[k] = method.params[k].check(v, strict, name=k)
     before, after = method.window(out)
     if before + after > method.max_span:
         changed = [

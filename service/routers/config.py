@@ -16,33 +16,19 @@ router = APIRouter(tags=["config"], dependencies=[Depends(require_token)])
 
 
 def check_param_types(method: str, params: dict[str, Any]) -> None:
-    """A method parameter's JSON type must be its own: a number for a numeric parameter
-    (``true`` and ``"32"`` are not), a string among text choices, a boolean for a switch.
-    ValueError naming the parameter; ranges, names and choices are the method's to check."""
-    from cfsr.methods.registry import methods
+    """Each method parameter checked strictly (:meth:`cfsr.methods.registry.Param.check`): its
+    JSON type must be its own (a number for a numeric parameter, ``true`` and ``"32"`` are
+    not), and its value in range. ValueError naming the parameter; unknown names and
+    methods are the method's own check to name, with the known ones."""
+    from cfsr.methods.registry import get_method
 
-    table = methods().get(method, {}).get("params", {})
+    try:
+        table = get_method(method).params
+    except ValueError:
+        return
     for name, value in params.items():
-        info = table.get(name)
-        if info is None:
-            continue  # an unknown name: the method's own check names it with the known ones
-        default = info.get("default")
-        numeric = info.get("minimum") is not None or info.get("maximum") is not None
-        if isinstance(default, bool):
-            ok = isinstance(value, bool)
-            want = "true or false"
-        elif numeric or isinstance(default, int | float):
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-            want = "a number"
-        elif info.get("choices"):
-            ok = type(value) in {type(c) for c in info["choices"]}
-            want = "one of " + ", ".join(map(str, info["choices"]))
-        else:
-            ok = isinstance(value, str) if isinstance(default, str) else True
-            want = "text"
-        if not ok:
-            raise ValueError(f"parameter {short(name, 64)}={short(value, 64)}: expected {want} "
-                             f"({info.get('range') or ''})".replace(" ()", ""))
+        if name in table:
+            table[name].check(value, strict=True, name=short(name, 64))
 
 
 @router.get("/api/methods", response_model=list[MethodInfo],
