@@ -15,6 +15,7 @@ import numpy as np
 
 from cfsr._bits import unpack_layout
 from cfsr.config import MethodConfig
+from cfsr.defects import DefectCorrector
 from cfsr.layout import Layout
 from cfsr.methods.registry import Method, Output
 
@@ -38,6 +39,10 @@ class StreamingReconstructor:
     slack : int
         Extra frames kept beyond the method's window, so a pushed block never evicts a frame
         still needed (steps).
+    defects : DefectCorrector, optional
+        Hot/dead pixel correction (:class:`cfsr.defects.DefectCorrector`): it learns its map
+        from every pushed block and corrects the block's frames as they enter the buffer, so
+        every method reads corrected spikes. None (default): the spikes as pushed.
 
     Notes
     -----
@@ -54,9 +59,11 @@ class StreamingReconstructor:
         params: Mapping[str, Any] | None = None,
         preset: str | None = None,
         slack: int = 4096,
+        defects: DefectCorrector | None = None,
     ) -> None:
         self.layout = layout
         self.slack = int(slack)
+        self.defects = defects
         self.gaps = 0
         self._buf: np.ndarray | None = None
         self._capacity = 0  # frames the mirrored ring holds (its rows / 2)
@@ -173,6 +180,8 @@ class StreamingReconstructor:
             self._first = start
         n = len(packed)
         _write_mirrored(buf, cap, packed, start)
+        if self.defects is not None:  # before any method reads them
+            self.defects.apply_mirrored(buf, cap, packed, start)
         self._next = start + n
         self._count = min(cap, self._count + n)
         self._first = self._next - self._count

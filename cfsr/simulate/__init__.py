@@ -11,14 +11,21 @@ free.
 ((200, 48, 64), 0.5)
 """
 
-from cfsr.simulate.scenes import SCENES, Mount, Rotor, Scene, Slider, drift, make_scene, vibration
-from cfsr.simulate.sensor import (
-    DEFAULT_GAIN,
-    DEFAULT_THRESHOLD,
-    NOISE_PRESETS,
+from cfsr.simulate.noise import NOISE_PRESETS, Noise
+from cfsr.simulate.scenes import (
+    SCENES,
+    Mount,
+    Rotor,
+    Scene,
+    Slider,
+    drift,
+    make_scene,
+    star_field,
+    vibration,
+)
+from cfsr.simulate.sensor import DEFAULT_GAIN, DEFAULT_THRESHOLD, Sensor
+from cfsr.simulate.simulation import (
     GroundTruth,
-    Noise,
-    Sensor,
     Simulation,
     gt_path,
     load_ground_truth,
@@ -45,5 +52,6 @@ __all__ = [
     "make_scene",
     "simulate",
     "simulate_to_dat",
+    "star_field",
     "vibration",
 ]

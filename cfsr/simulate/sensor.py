@@ -20,7 +20,9 @@ intensity, threshold 400 -> 0.64 for white). The ``lowlight`` scene has illumina
 
 Optional noise (:class:`Noise`): SPCS-like fixed-pattern noise (per-pixel threshold mismatch,
 gain spread, dark current: a charge added every step, independent of light), hot pixels (a few
-pixels with a dark current far above the rest), and optional temporal photon shot noise.
+pixels with a dark current far above the rest), dead pixels (never fire), and optional
+temporal photon shot noise. The hot and dead pixels are the true defect map
+(:attr:`Sensor.defect_map`).
 Everything is deterministic for a given ``seed``, whatever the chunk size or thread count.
 Without an explicit ``noise`` the sensor uses the scene's own (``Scene.noise``: the ``noisy``
 scene has the ``sensor`` preset, every other scene none).
@@ -43,12 +45,8 @@ exact up to that quantisation, which flatters it at low rates (``lowlight``). Us
 
 from __future__ import annotations
 
-import json
 import math
-import os
-from collections.abc import Callable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field, fields
-from pathlib import Path
+from collections.abc import Iterator, Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -56,22 +54,11 @@ from numba import prange
 
 from cfsr._jit import njit
 from cfsr._splitmix import GOLDEN, mix64
-from cfsr.layout import STEP_RATE_HZ, Layout
-from cfsr.simulate.scenes import Scene, make_scene
+from cfsr.defects.defect_map import DefectMap
+from cfsr.simulate.noise import NOISE_PRESETS, Noise
+from cfsr.simulate.scenes import Scene
 
-__all__ = [
-    "DEFAULT_GAIN",
-    "DEFAULT_THRESHOLD",
-    "NOISE_PRESETS",
-    "Noise",
-    "Sensor",
-    "Simulation",
-    "GroundTruth",
-    "simulate",
-    "simulate_to_dat",
-    "gt_path",
-    "load_ground_truth",
-]
+__all__ = ["DEFAULT_GAIN", "DEFAULT_THRESHOLD", "NOISE_PRESETS", "Noise", "Sensor"]
 
 #: Charge per step at intensity 1.0, in units of the nominal threshold (times illumination).
 DEFAULT_GAIN = 0.5
@@ -79,127 +66,6 @@ DEFAULT_GAIN = 0.5
 DEFAULT_THRESHOLD = 1.0
 
 _CHUNK = 128  # steps rendered and integrated per kernel call
-
-
-# --------------------------------------------------------------------------- noise
-
-
-@dataclass(frozen=True)
-class Noise:
-    """Fixed-pattern sensor noise (all per pixel, drawn once from the seed).
-
-    Parameters
-    ----------
-    threshold_sd : float
-        Relative standard deviation of the per-pixel threshold (SPCS: 3/400 = 0.0075).
-    gain_sd : float
-        Relative standard deviation of the per-pixel gain (SPCS: 0.027).
-    dark_rate : float
-        Mean dark-current firing rate in spikes per step, i.e. the rate of a pixel in total
-        darkness (SPCS: 1/400 = 0.0025).
-    dark_sd : float
-        Relative standard deviation of the per-pixel dark current (SPCS: 0.008).
-    electrons_per_spike : float
-        Temporal photon shot noise (ours, not in SPCS): the charge of one threshold counts
-        this many photo-electrons, and each step's charge is a Poisson draw of its expected
-        electron count (normal approximation above 12 per step). 0 (default) turns it off;
-        the ``shot`` preset uses 100 (an illustrative value, not a measured one), giving an
-        ISI jitter of about ``1/sqrt(100) = 10 %``. Expected rates are unchanged.
-    hot_fraction : float
-        Fraction of pixels that are *hot* (ours, not in SPCS): their dark current alone makes
-        them fire at ``hot_rate`` times a uniform draw in [0.5, 1] spikes per step, whatever
-        the light. Hot pixels are drawn once from the seed (``Sensor.hot_mask``); at least one
-        pixel is hot when ``hot_fraction > 0``.
-    hot_rate : float
-        Dark firing rate of the hottest pixels in spikes per step (at most 1); required
-        (> 0) with ``hot_fraction``.
-    """
-
-    threshold_sd: float = 0.0
-    gain_sd: float = 0.0
-    dark_rate: float = 0.0
-    dark_sd: float = 0.0
-    electrons_per_spike: float = 0.0
-    hot_fraction: float = 0.0
-    hot_rate: float = 0.0
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"noise {f.name}={v!r}: must be a finite number >= 0")
-        if self.threshold_sd >= 0.5:
-            raise ValueError(f"noise threshold_sd={self.threshold_sd}: must be < 0.5 (relative)")
-        if self.dark_rate >= 1:
-            raise ValueError(f"noise dark_rate={self.dark_rate}: must be < 1 spike/step")
-        if self.hot_fraction > 1:
-            raise ValueError(f"noise hot_fraction={self.hot_fraction}: must be <= 1")
-        if self.hot_rate > 1:
-            raise ValueError(f"noise hot_rate={self.hot_rate}: must be <= 1 spike/step")
-        if self.hot_fraction > 0 and self.hot_rate <= 0:
-            raise ValueError("noise hot_fraction > 0 needs hot_rate > 0 (spikes/step)")
-
-    @property
-    def is_zero(self) -> bool:
-        return not any(getattr(self, f.name) for f in fields(self))
-
-    def to_dict(self) -> dict[str, float]:
-        return asdict(self)
-
-    @classmethod
-    def parse(cls, spec: str | Mapping[str, Any] | Noise | None) -> Noise:
-        """A preset name (``none``, ``spcs``, ``shot``, ``sensor``), ``"NAME=VALUE,..."``
-        (optionally after a preset, ``"spcs,dark_rate=0.01"``), a mapping, a Noise, or None
-        (no noise)."""
-        if spec is None:
-            return cls()
-        if isinstance(spec, Noise):
-            return spec
-        if isinstance(spec, Mapping):
-            names = {f.name for f in fields(cls)}
-            bad = sorted(set(spec) - names)
-            if bad:
-                raise ValueError(f"unknown noise parameter(s) {bad}; known: {sorted(names)}")
-            return cls(**{k: float(v) for k, v in spec.items()})
-        base: dict[str, float] = {}
-        for part in str(spec).split(","):
-            part = part.strip()
-            if not part:
-                continue
-            if "=" in part:
-                k, v = (s.strip() for s in part.split("=", 1))
-                try:
-                    base[k] = float(v)
-                except ValueError:
-                    raise ValueError(f"noise {k}={v!r}: not a number") from None
-            elif part.lower() in NOISE_PRESETS:
-                base.update(NOISE_PRESETS[part.lower()].to_dict())
-            else:
-                raise ValueError(
-                    f"unknown noise preset {part!r}; presets: {', '.join(NOISE_PRESETS)}, "
-                    "or NAME=VALUE with NAME in "
-                    f"{', '.join(f.name for f in fields(cls))}"
-                )
-        return cls.parse(base)
-
-
-NOISE_PRESETS: dict[str, Noise] = {
-    "none": Noise(),
-    "spcs": Noise(threshold_sd=3 / 400, gain_sd=0.027451, dark_rate=1 / 400, dark_sd=0.008),
-    "shot": Noise(electrons_per_spike=100.0),
-    # Fixed-pattern noise of a real sensor, for the ``noisy`` scene: SPCS's gain spread and
-    # mean dark current, and our own choices for the rest (no published spike-camera values
-    # verified): threshold mismatch 3 % (4x SPCS), per-pixel dark current spread 50 %, 0.1 %
-    # hot pixels firing at 0.25-0.5 spikes/step.
-    "sensor": Noise(
-        threshold_sd=0.03,
-        gain_sd=0.027451,
-        dark_rate=1 / 400,
-        dark_sd=0.5,
-        hot_fraction=0.001,
-        hot_rate=0.5,
-    ),
-}
 
 
 # --------------------------------------------------------------------------- kernel
@@ -403,12 +269,25 @@ class Sensor:
             rates = nz.hot_rate * rng.uniform(0.5, 1.0, size=k)
             hot.ravel()[idx] = True
             dmap.ravel()[idx] += rates * thr.ravel()[idx]  # in darkness: `rates` spikes/step
+        dead = np.zeros((h, w), bool)
+        if nz.dead_fraction:  # drawn after the hot pixels, among the others
+            k = min(int((~hot).sum()), max(1, round(nz.dead_fraction * h * w)))
+            idx = rng.choice(np.flatnonzero(~hot), size=k, replace=False)
+            dead.ravel()[idx] = True
+            gmap[dead] = 0.0
+            dmap[dead] = 0.0
         self.hot_mask = hot
+        self.dead_mask = dead
         self.threshold_map = thr
         self.gain_map = gmap
         self.dark_map = dmap
         self._pot = u0 * thr  # uniform in [0, threshold_px)
         self._stream_seed = np.uint64(rng.integers(0, 2**63, dtype=np.int64))
+
+    @property
+    def defect_map(self) -> DefectMap:
+        """The true defect map: the hot and dead pixels drawn from the seed."""
+        return DefectMap(self.hot_mask, self.dead_mask, 0, "simulator")
 
     @property
     def rate_scale(self) -> float:
@@ -470,279 +349,3 @@ class Sensor:
             "seed": self.seed,
             "start": self.start,
         }
-
-
-# --------------------------------------------------------------------------- simulation
-
-
-@dataclass
-class Simulation:
-    """Spikes of a simulated scene with their ground truth.
-
-    Index ``t`` below is the frame index into :attr:`spikes` (scene step ``start + t``).
-
-    Attributes
-    ----------
-    spikes : ndarray (steps, H, W) uint8 0/1, upright
-    scene : Scene
-    sensor : Sensor
-        The sensor after the run (its per-pixel gain/threshold/dark maps define ``gt_rate``).
-    """
-
-    spikes: np.ndarray
-    scene: Scene
-    sensor: Sensor
-    seed: int = 0
-    start: int = 0
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def steps(self) -> int:
-        return int(self.spikes.shape[0])
-
-    @property
-    def rate_scale(self) -> float:
-        """Firing rate (spikes/step) at intensity 1.0 (``gain / threshold``); the display gain."""
-        return self.sensor.rate_scale
-
-    def _check(self, t: int) -> int:
-        t = int(t)
-        if not 0 <= t < self.steps:
-            raise ValueError(f"step {t} outside the simulation (0..{self.steps - 1})")
-        return t
-
-    def gt_image(self, t: int) -> np.ndarray:
-        """Scene intensity at frame ``t``: float32 ``(H, W)`` in [0, 1]."""
-        return self.scene.intensity(self.start + self._check(t))
-
-    def gt_rate(self, t: int) -> np.ndarray:
-        """Expected firing rate at frame ``t`` (spikes/step, float32), dark current included."""
-        return self.sensor.rate_from_intensity(self.gt_image(t))
-
-    def ideal_rate(self, t: int) -> np.ndarray:
-        """Rate of an ideal (noise-free) pixel at frame ``t``: ``clip(rate_scale * I, 0, 1)``.
-
-        The evaluation's ground truth: the scene, not the sensor's fixed pattern (equal to
-        :meth:`gt_rate` without fixed-pattern noise).
-        """
-        r = self.rate_scale * self.gt_image(t).astype(np.float64)
-        return np.clip(r, 0.0, 1.0).astype(np.float32)
-
-    def motion_mask(self, t: int) -> np.ndarray:
-        """True motion mask at frame ``t`` (bool ``(H, W)``)."""
-        return self.scene.motion_mask(self.start + self._check(t))
-
-    def describe(self) -> dict[str, Any]:
-        return {"scene": self.scene.describe(), "simulator": self.sensor.params(), **self.meta}
-
-
-def _as_scene(scene: str | Scene, height: int, width: int) -> Scene:
-    if isinstance(scene, Scene):
-        return scene
-    return make_scene(scene, height=height, width=width)
-
-
-def simulate(
-    scene: str | Scene,
-    steps: int,
-    *,
-    seed: int = 0,
-    height: int = 250,
-    width: int = 400,
-    gain: float | None = None,
-    threshold: float = DEFAULT_THRESHOLD,
-    noise: Noise | str | Mapping[str, Any] | None = None,
-    start: int = 0,
-    progress: Callable[[int], Any] | None = None,
-) -> Simulation:
-    """Simulate ``steps`` spike frames of a scene, in memory.
-
-    Parameters
-    ----------
-    scene : str or Scene
-        A name from :data:`~cfsr.simulate.SCENES` or a Scene (then ``height``/``width`` are
-        ignored).
-    steps : int
-        Number of frames (1 step = 25 us).
-    seed : int
-        Random seed (initial potentials, noise maps); same seed, same spikes.
-    height, width : int
-        Frame size in pixels (default 400 x 250).
-    gain : float, optional
-        Charge per step at intensity 1.0 in threshold units; default ``0.5 *
-        scene.illumination`` (rate_scale 0.5 spikes/step; 0.05 for ``lowlight``).
-    threshold : float
-        Nominal threshold (default 1.0).
-    noise : Noise, str, mapping or None
-        ``None`` (the scene's own: ideal for all but ``noisy``), ``"none"`` (ideal),
-        ``"spcs"`` (SPCS-like fixed-pattern noise), ``"sensor"``, ``"shot"`` or
-        ``"NAME=VALUE,..."``.
-    start : int
-        Scene step of frame 0.
-    progress : callable, optional
-        Called with the number of frames simulated after each block.
-
-    Returns
-    -------
-    Simulation
-        ``spikes`` is ``(steps, H, W)`` uint8; at 400 x 250 that is 100 kB per step, so use
-        :func:`simulate_to_dat` for long runs.
-
-    Examples
-    --------
-    >>> sim = simulate("static", 100, height=16, width=16)
-    >>> sim.spikes.shape, sim.rate_scale
-    ((100, 16, 16), 0.5)
-    """
-    steps = int(steps)
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
-    sc = _as_scene(scene, height, width)
-    sensor = Sensor(sc, seed=seed, gain=gain, threshold=threshold, noise=noise, start=start)
-    out = np.empty((steps,) + sc.shape, np.uint8)
-    block = 1024
-    for a in range(0, steps, block):
-        b = min(steps, a + block)
-        sensor.read(b - a, out=out[a:b])
-        if progress is not None:
-            progress(b - a)
-    return Simulation(out, sc, sensor, seed=int(seed), start=int(start))
-
-
-def gt_path(dat_path: str | os.PathLike) -> Path:
-    """``NAME.dat`` -> ``NAME.gt.npz`` (the ground truth written beside a simulated file)."""
-    p = Path(dat_path)
-    stem = p.name[: -len(p.suffix)] if p.suffix else p.name
-    return p.with_name(stem + ".gt.npz")
-
-
-def simulate_to_dat(
-    scene: str | Scene,
-    steps: int,
-    path: str | os.PathLike,
-    *,
-    seed: int = 0,
-    gt_every: int | None = 100,
-    height: int = 250,
-    width: int = 400,
-    gain: float | None = None,
-    threshold: float = DEFAULT_THRESHOLD,
-    noise: Noise | str | Mapping[str, Any] | None = None,
-    start: int = 0,
-    chunk: int = 1024,
-    progress: Callable[[int], Any] | None = None,
-) -> Path:
-    """Simulate a scene straight to a ``.dat`` file, its sidecar and a ground-truth NPZ.
-
-    Frames are simulated and written ``chunk`` at a time, so memory stays bounded however long
-    the run. Writes
-
-    * ``path``: the spikes, ``.dat`` layout (rows upside down, LSB first);
-    * ``path.json``: sidecar with ``gain`` = rate_scale (spikes/step shown as white), the scene
-      description, ``seed`` and the simulator parameters;
-    * ``NAME.gt.npz``: ground truth every ``gt_every`` frames: ``steps`` (int64 frame indices),
-      ``images`` (float32 (n, H, W) intensity in [0, 1]), ``masks`` (bool (n, H, W) true motion
-      masks), ``rate_scale``, and the per-pixel ``gain_map``, ``threshold_map``, ``dark_map``
-      (so the expected rate is ``clip((gain_map * I + dark_map) / threshold_map, 0, 1)``; see
-      :func:`load_ground_truth`). ``gt_every=None`` or 0 writes no ground truth.
-
-    Other parameters are those of :func:`simulate`. Returns the ``.dat`` path.
-    """
-    from cfsr.datfile import DatWriter
-
-    steps = int(steps)
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
-    if gt_every is not None and int(gt_every) < 0:
-        raise ValueError(f"gt_every must be >= 0 steps, got {gt_every}")
-    path = Path(path)
-    sc = _as_scene(scene, height, width)
-    sensor = Sensor(sc, seed=seed, gain=gain, threshold=threshold, noise=noise, start=start)
-    h, w = sc.shape
-    # a frame must be a whole number of bytes: pad rows with zero head columns if needed
-    pad = next(k for k in range(8) if (h * (w + k)) % 8 == 0)
-    layout = Layout(width=w, height=h, head_cols=pad)
-    gpath = gt_path(path) if gt_every else None
-    meta = {
-        # the display gain is a rate (spikes/step, at most 1): an ideal pixel at intensity 1.0
-        # fires at rate_scale, clipped to one spike per step like the sensor itself
-        "gain": min(sensor.rate_scale, 1.0),
-        "source": "cfsr.simulate",
-        "scene": sc.describe(),
-        "seed": int(seed),
-        "simulator": sensor.params(),
-        "ground_truth": gpath.name if gpath else None,
-        "gt_every": int(gt_every) if gt_every else None,
-    }
-    with DatWriter(path, layout, rate_hz=float(STEP_RATE_HZ), meta=meta) as wr:
-        for block in sensor.iter_chunks(steps, chunk):
-            wr.write_frames(block)
-            if progress is not None:
-                progress(block.shape[0])
-    if gpath is not None:
-        ks = np.arange(0, steps, int(gt_every), dtype=np.int64)
-        images = np.empty((len(ks), h, w), np.float32)
-        masks = np.empty((len(ks), h, w), bool)
-        for i, k in enumerate(ks):
-            images[i], masks[i] = sc.intensity_and_mask(int(start + k))
-        np.savez_compressed(
-            gpath,
-            steps=ks,
-            images=images,
-            masks=masks,
-            rate_scale=np.float64(sensor.rate_scale),
-            gain_map=sensor.gain_map.astype(np.float32),
-            threshold_map=sensor.threshold_map.astype(np.float32),
-            dark_map=sensor.dark_map.astype(np.float32),
-            scene=np.array(json.dumps(sc.describe())),
-        )
-    return path
-
-
-@dataclass
-class GroundTruth:
-    """Ground truth of a simulated ``.dat`` (see :func:`simulate_to_dat`)."""
-
-    steps: np.ndarray
-    images: np.ndarray
-    masks: np.ndarray
-    rate_scale: float
-    gain_map: np.ndarray
-    threshold_map: np.ndarray
-    dark_map: np.ndarray
-    scene: dict[str, Any]
-
-    def index(self, t: int) -> int:
-        hit = np.flatnonzero(self.steps == int(t))
-        if not hit.size:
-            raise ValueError(
-                f"no ground truth at step {t}; stored steps {self.steps[0]}..{self.steps[-1]} "
-                f"every {int(self.steps[1] - self.steps[0]) if len(self.steps) > 1 else '-'}"
-            )
-        return int(hit[0])
-
-    def rate(self, t: int) -> np.ndarray:
-        """Expected firing rate at frame ``t`` (spikes/step, float32)."""
-        img = self.images[self.index(t)]
-        r = (self.gain_map * img + self.dark_map) / self.threshold_map
-        return np.clip(r, 0.0, 1.0).astype(np.float32)
-
-
-def load_ground_truth(path: str | os.PathLike) -> GroundTruth:
-    """Read ``NAME.gt.npz`` (or the ground truth of ``NAME.dat``)."""
-    p = Path(path)
-    if not p.name.endswith(".gt.npz"):
-        p = gt_path(p)
-    if not p.exists():
-        raise FileNotFoundError(f"{p}: no ground-truth file")
-    with np.load(p, allow_pickle=False) as z:
-        return GroundTruth(
-            steps=z["steps"],
-            images=z["images"],
-            masks=z["masks"],
-            rate_scale=float(z["rate_scale"]),
-            gain_map=z["gain_map"],
-            threshold_map=z["threshold_map"],
-            dark_map=z["dark_map"],
-            scene=json.loads(str(z["scene"])),
-        )

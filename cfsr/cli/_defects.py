@@ -1,0 +1,49 @@
+"""``cfsr bench --defects``: every method on a clean and on a defective sensor, with and
+without the hot/dead pixel correction; the map's precision and recall over time; what the
+correction costs per frame beside each method (:func:`cfsr.defects.evaluate.evaluate_defects`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+#: Every method of the accuracy table at its defaults.
+DEFECT_METHODS = ("tfi", "tfp", "tfa", "tfstp", "snm", "csr", "cfsr")
+QUICK_METHODS = ("tfp", "cfsr")
+
+
+def defects_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
+    from cfsr.defects.evaluate import evaluate_defects
+    from cfsr.evaluation import split_method_specs
+
+    methods = (split_method_specs(args.methods) if args.methods
+               else list(QUICK_METHODS if args.quick else DEFECT_METHODS))
+    scenes = [s.strip() for s in args.scenes.split(",")] if args.scenes else ["disk", "stars"]
+    bar.set_description("defects")
+    return evaluate_defects(methods, scenes, steps=args.steps or 1200)
+
+
+def print_defects(res: dict[str, Any]) -> None:
+    from cfsr.bench import format_rows
+
+    print(format_rows(res["rows"], [
+        ("method", "method", ""), ("scene", "scene", ""), ("sensor", "sensor", ""),
+        ("psnr_all", "PSNR all", ".2f"), ("psnr_motion", "PSNR motion", ".2f"),
+        ("ms_per_frame", "ms/frame", ".1f"),
+    ]))
+    for scene, m in res["maps"].items():
+        print(f"\n{scene}: {m['true_hot']} hot, {m['true_dead']} dead; "
+              f"{m['clean_flags']} flagged on the clean sensor")
+        print(format_rows(m["over_time"], [
+            ("steps", "steps", ""), ("hot_precision", "hot precision", ".3f"),
+            ("hot_recall", "hot recall", ".3f"), ("dead_precision", "dead precision", ".3f"),
+            ("dead_recall", "dead recall", ".3f"),
+        ]))
+    cost = {k: v for k, v in res["cost"].items() if isinstance(v, dict)}
+    print()
+    print(format_rows([{"method": k, **v} for k, v in cost.items()], [
+        ("method", "method", ""), ("window_steps", "window", ""),
+        ("ms_per_frame", "correct ms/frame", ".3f"), ("method_ms_per_frame", "method ms", ".1f"),
+        ("fraction", "share", ".3f"), ("live_us_per_step", "live us/step", ".2f"),
+    ]))

@@ -1,0 +1,235 @@
+"""Correction of flagged pixels before any reconstruction, in the spikes themselves.
+
+A hot or dead pixel takes, step by step, the spikes of one good neighbour (its *donor*: of
+the good side neighbours, the one whose long-run rate is the median of theirs; diagonals when
+no side neighbour is good). Every method then sees a pixel with a plausible rate and plausible
+intervals, so TFI, TFP, TFA, TFSTP, SNM, CSR and CFSR gain alike; the copy is done on the
+packed words (:func:`correct_packed`), one bit per defect per step, so it costs next to
+nothing beside a reconstruction.
+
+Two places run it, both through :func:`correct_packed`: :class:`DefectCorrector` on the blocks
+pushed into a :class:`~cfsr.streaming.StreamingReconstructor` (the live path: it learns the
+map online as it goes) and :class:`CorrectedRecording` on the windows read from a recording
+(the offline path, with the map from the sidecar or from a first pass over the file).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from cfsr._jit import njit
+from cfsr._packed import stored_to_image
+from cfsr.defects.defect_map import DEFECTS_KEY, DefectMap
+from cfsr.defects.estimate import DefectEstimator, DefectParams, classify
+from cfsr.layout import Layout
+from cfsr.spikes import SpikeRecording
+
+__all__ = [
+    "DonorPlan",
+    "plan_donors",
+    "correct_packed",
+    "DefectCorrector",
+    "CorrectedRecording",
+    "estimate_map",
+    "corrected",
+    "map_of",
+]
+
+_SIDE = ((0, -1), (0, 1), (-1, 0), (1, 0))
+_DIAGONAL = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+
+
+class DonorPlan(NamedTuple):
+    """Stored pixel indices: ``targets[j]`` takes the spikes of ``donors[j]`` (int64)."""
+
+    targets: np.ndarray
+    donors: np.ndarray
+
+
+def _stored_index(layout: Layout) -> np.ndarray:
+    """Upright (H, W) image of each pixel's index in the stored (packed) raster."""
+    return stored_to_image(np.arange(layout.frame_bytes * 8, dtype=np.int64), layout)
+
+
+def plan_donors(dmap: DefectMap, layout: Layout, rates: np.ndarray | None = None) -> DonorPlan:
+    """Pick a good neighbour for every flagged pixel of ``dmap``.
+
+    ``rates``: upright long-run rates (spikes/step) used to pick the median side neighbour;
+    without them the first good side neighbour is taken. A pixel with no good neighbour at
+    all is left as it is.
+    """
+    bad = dmap.mask
+    h, w = bad.shape
+    if (h, w) != layout.shape:
+        raise ValueError(f"defect map {w} x {h} does not fit frames {layout.width} x "
+                         f"{layout.height}")
+    index = _stored_index(layout)
+    targets, donors = [], []
+    for y, x in zip(*np.nonzero(bad), strict=True):
+        for ring in (_SIDE, _DIAGONAL):
+            good = [(y + dy, x + dx) for dy, dx in ring
+                    if 0 <= y + dy < h and 0 <= x + dx < w and not bad[y + dy, x + dx]]
+            if good:
+                if rates is not None:
+                    good.sort(key=lambda p: rates[p])
+                pick = good[(len(good) - 1) // 2]
+                targets.append(index[y, x])
+                donors.append(index[pick])
+                break
+    return DonorPlan(np.asarray(targets, np.int64), np.asarray(donors, np.int64))
+
+
+@njit
+def _copy_bits(packed, targets, donors):  # pragma: no cover - numba
+    """Bit ``targets[j]`` of every frame of ``packed`` (n, bytes) := bit ``donors[j]``."""
+    for t in range(packed.shape[0]):
+        row = packed[t]
+        for j in range(targets.shape[0]):
+            p = targets[j]
+            q = donors[j]
+            bit = (np.int64(row[q >> 3]) >> (q & 7)) & 1
+            keep = np.int64(row[p >> 3]) & ~(np.int64(1) << (p & 7))
+            row[p >> 3] = np.uint8(keep | (bit << (p & 7)))
+    return packed
+
+
+def correct_packed(packed: np.ndarray, plan: DonorPlan, *, copy: bool = True) -> np.ndarray:
+    """Packed frames ``(n, frame_bytes)`` with every target pixel given its donor's spikes
+    (a corrected copy, or ``packed`` itself changed when ``copy=False``)."""
+    out = np.array(packed, np.uint8, copy=True) if copy else packed
+    if plan.targets.size and len(out):
+        _copy_bits(out, plan.targets, plan.donors)
+    return out
+
+
+@dataclass
+class DefectCorrector:
+    """Learns the defect map from pushed blocks and corrects them (the live path).
+
+    Parameters
+    ----------
+    layout : Layout
+    defect_map : DefectMap, optional
+        A map given from outside (sidecar, calibration file); then nothing is learned unless
+        ``learn`` is True, and a learned map replaces it only once ready.
+    learn : bool, optional
+        Estimate the map online (default: when no map is given).
+    enabled : bool
+        False: learn (if asked) but leave the spikes as they are.
+    """
+
+    layout: Layout
+    defect_map: DefectMap | None = None
+    learn: bool | None = None
+    enabled: bool = True
+    params: DefectParams = field(default_factory=DefectParams)
+
+    def __post_init__(self) -> None:
+        if self.learn is None:
+            self.learn = self.defect_map is None
+        self.estimator = DefectEstimator(self.layout, self.params) if self.learn else None
+        self.plan = plan_donors(self.map, self.layout)
+
+    @property
+    def map(self) -> DefectMap:
+        """The map in use (given, learned, or empty)."""
+        if self.defect_map is not None:
+            return self.defect_map
+        return self.estimator.map if self.estimator else DefectMap.empty(self.layout.shape)
+
+    def learn_from(self, packed: np.ndarray, start: int) -> None:
+        """Count packed frames ``packed`` (first frame step ``start``) into the online map."""
+        est = self.estimator
+        if est is not None and est.update(packed, start):
+            # a learned map replaces a given one only once it is ready
+            if self.defect_map is None or est.ready:
+                self.defect_map = None
+                self.plan = plan_donors(est.map, self.layout, est.counts())
+
+    def process(self, packed: np.ndarray, start: int) -> np.ndarray:
+        """Learn from ``packed`` (first frame step ``start``); return a corrected copy."""
+        self.learn_from(packed, start)
+        return correct_packed(packed, self.plan) if self.enabled else packed
+
+    def apply_mirrored(self, buf: np.ndarray, cap: int, packed: np.ndarray, start: int) -> None:
+        """Learn from ``packed`` and correct, in place, its frames just written to the mirrored
+        ring ``buf`` of ``cap`` frames (step s at rows ``s % cap`` and ``s % cap + cap``; see
+        :class:`~cfsr.streaming.StreamingReconstructor`): no copy of the block is made."""
+        self.learn_from(packed, start)
+        if not (self.enabled and self.plan.targets.size):
+            return
+        n = len(packed)
+        i0 = start % cap
+        k = min(n, cap - i0)
+        for a, b in ((i0, i0 + k), (i0 + cap, i0 + cap + k), (0, n - k), (cap, cap + n - k)):
+            if b > a:
+                _copy_bits(buf[a:b], self.plan.targets, self.plan.donors)
+
+    def state(self) -> dict[str, Any]:
+        """What a status shows: ``state`` (off / learning / ready / given), the counts of hot
+        and dead pixels, the steps counted and the confidence (0..1)."""
+        m = self.map
+        est = self.estimator
+        if not self.enabled:
+            state = "off"
+        elif self.defect_map is not None:
+            state = "given"
+        else:
+            state = "ready" if est is not None and est.ready else "learning"
+        return {
+            "state": state,
+            "hot": m.n_hot,
+            "dead": m.n_dead,
+            "steps": est.steps if est is not None else m.steps,
+            "confidence": est.confidence if est is not None else 1.0,
+        }
+
+
+@dataclass
+class CorrectedRecording(SpikeRecording):
+    """A recording read through a defect correction: ``packed``/``frames`` return corrected
+    copies of the stored frames (which stay untouched in ``packed_frames``)."""
+
+    defect_map: DefectMap | None = None
+    plan: DonorPlan | None = None
+
+    def packed(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        raw = super().packed(start, stop)
+        return raw if self.plan is None else correct_packed(raw, self.plan)
+
+
+def map_of(rec: SpikeRecording) -> DefectMap | None:
+    """The defect map in ``rec``'s sidecar (checked), or None."""
+    obj = rec.meta.get(DEFECTS_KEY)
+    if obj is None:
+        return None
+    return DefectMap.from_dict(obj, rec.layout.shape, where=f"{rec.path or 'recording'} defects")
+
+
+def estimate_map(rec: SpikeRecording, steps: int = 2000, *,
+                 params: DefectParams | None = None) -> tuple[DefectMap, np.ndarray]:
+    """A first pass over ``rec``'s first ``steps`` steps: the map and the upright counts
+    (every step counted: offline there is no stream to keep up with)."""
+    base = params or DefectParams()
+    est = DefectEstimator(rec.layout, DefectParams(**{**base.__dict__, "duty": 1}))
+    n = min(int(steps), rec.n_frames)
+    for a in range(0, n, 1024):
+        est.update(rec.packed(a, min(n, a + 1024)), a)
+    return classify(est.counts(), est.steps, est.params), est.counts()
+
+
+def corrected(rec: SpikeRecording, defect_map: DefectMap | None = None, *,
+              steps: int = 2000) -> CorrectedRecording:
+    """``rec`` read through the correction of ``defect_map`` (default: the sidecar's, else one
+    estimated from its first ``steps`` steps)."""
+    rates = None
+    if defect_map is None:
+        defect_map = map_of(rec)
+    if defect_map is None:
+        defect_map, counts = estimate_map(rec, steps)
+        rates = counts / max(1, defect_map.steps)
+    return CorrectedRecording(rec.packed_frames, rec.layout, rec.rate_hz, dict(rec.meta),
+                              rec.path, defect_map, plan_donors(defect_map, rec.layout, rates))
