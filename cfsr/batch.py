@@ -44,6 +44,9 @@ class ChunkTask:
     #: the first group's cost) and threads in each
     workers: int | None = 1
     threads: int = 1
+    #: hot/dead pixel correction (:func:`cfsr.defects.with_defects`): "auto", "off" or a
+    #: calibration file
+    defects: str | None = "auto"
 
 
 def plan_chunks(times: Sequence[int], chunk_steps: int) -> list[tuple[int, ...]]:
@@ -79,10 +82,11 @@ def run_chunk(
     """Run one chunk (in this process or on a cluster worker), on ``pool`` (a running
     :class:`~cfsr.pool.FramePool`) if given; returns counts and timing."""
     from cfsr.datfile import read_spikes
+    from cfsr.defects import with_defects
     from cfsr.offline import stream_reconstruct
 
     t0 = time.perf_counter()
-    rec = read_spikes(task.path, **dict(task.read_kwargs or {}))
+    rec = with_defects(read_spikes(task.path, **dict(task.read_kwargs or {})), task.defects)
     out_dir = Path(task.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     gain = task.gain if task.gain is not None else rec.gain

@@ -15,6 +15,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--all", action="store_true", help="scan every frame (default: the first 40,000 = 1 s)"
     )
+    p.add_argument(
+        "--save-defects",
+        action="store_true",
+        help="store the hot/dead pixel map found here in the recording's sidecar (a replay "
+        "then starts corrected)",
+    )
+    p.add_argument(
+        "--export-defects",
+        metavar="FILE",
+        help="write the hot/dead pixel map found here as a calibration file (JSON), for "
+        "'cfsr reconstruct --defects FILE'",
+    )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
@@ -62,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
         "sidecar": has_sidecar,
         "sidecar_final": has_sidecar and not provisional,
         **asdict(st),
+        "defects": _defects(rec, args),
     }
     if args.json:
         print(json.dumps(info, indent=2))
@@ -90,6 +103,11 @@ def run(args: argparse.Namespace) -> int:
         f"            {st.dead_fraction:.2%} never fired, {st.saturated_fraction:.2%} saturated, "
         f"{st.empty_frames} empty frames"
     )
+    d = info["defects"]
+    print(f"defects     {d['hot']} hot, {d['dead']} dead pixels (found in the first "
+          f"{d['steps']} steps" + (f"; the sidecar's map: {d['sidecar']['hot']} hot, "
+                                   f"{d['sidecar']['dead']} dead" if d["sidecar"] else "")
+          + ")" + "".join(f"; {what}" for what in d["written"]))
     if st.problems:
         print("problems:")
         for pr in st.problems:
@@ -97,3 +115,25 @@ def run(args: argparse.Namespace) -> int:
     else:
         print("problems:   none found")
     return 0
+
+
+def _defects(rec, args: argparse.Namespace) -> dict:
+    """The hot/dead pixel map found in the first 2,000 steps (and the sidecar's, if any);
+    stored or exported as asked."""
+    from cfsr.defects import estimate_map, map_of, save_map, write_to_sidecar
+
+    found, _ = estimate_map(rec, 2000)
+    given = map_of(rec)
+    written = []
+    if args.save_defects:
+        written.append(f"stored in {write_to_sidecar(rec, found)}")
+    if args.export_defects:
+        written.append(f"exported to {save_map(found, args.export_defects)}")
+    return {
+        "hot": found.n_hot,
+        "dead": found.n_dead,
+        "steps": found.steps,
+        "sidecar": None if given is None else {"hot": given.n_hot, "dead": given.n_dead,
+                                                "steps": given.steps, "source": given.source},
+        "written": written,
+    }

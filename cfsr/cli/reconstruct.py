@@ -65,6 +65,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "sidecar's gain, else the 99.5th percentile of each image",
     )
     p.add_argument(
+        "--defects",
+        default="auto",
+        metavar="auto|off|FILE",
+        help="hot and dead pixel correction before the method: 'auto' (default) uses the "
+        "map in the recording's sidecar, else one found from its first 2,000 steps; 'off' "
+        "keeps the spikes as recorded; FILE is a calibration map (JSON, 'cfsr info "
+        "--export-defects')",
+    )
+    p.add_argument(
         "--video",
         type=Path,
         metavar="OUT.mp4",
@@ -153,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
                     _read_kwargs(args),
                     args.workers,
                     args.threads,
+                    args.defects,
                 )
             )
     bar = tqdm(
@@ -183,6 +193,7 @@ def _video(args: argparse.Namespace, rec, method: str, times: list[int], params:
     import cv2
     from tqdm import tqdm
 
+    from cfsr.defects import with_defects
     from cfsr.display import auto_gain, to_display
     from cfsr.offline import stream_reconstruct
 
@@ -205,7 +216,7 @@ def _video(args: argparse.Namespace, rec, method: str, times: list[int], params:
             mininterval=0.5,
         ) as bar:
             for _, out in stream_reconstruct(
-                rec,
+                with_defects(rec, args.defects),
                 method,
                 times,
                 params=params,

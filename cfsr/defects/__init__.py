@@ -18,8 +18,15 @@ from cfsr.defects.correct import (
     estimate_map,
     map_of,
     plan_donors,
+    with_defects,
 )
-from cfsr.defects.defect_map import DEFECTS_KEY, DefectMap, load_map, save_map
+from cfsr.defects.defect_map import (
+    DEFECTS_KEY,
+    DefectMap,
+    load_map,
+    save_map,
+    write_to_sidecar,
+)
 from cfsr.defects.estimate import DefectEstimator, DefectParams, classify
 from cfsr.defects.score import score_map
 
@@ -40,4 +47,6 @@ __all__ = [
     "plan_donors",
     "save_map",
     "score_map",
+    "with_defects",
+    "write_to_sidecar",
 ]

@@ -36,6 +36,7 @@ __all__ = [
     "estimate_map",
     "corrected",
     "map_of",
+    "with_defects",
 ]
 
 _SIDE = ((0, -1), (0, 1), (-1, 0), (1, 0))
@@ -233,3 +234,16 @@ def corrected(rec: SpikeRecording, defect_map: DefectMap | None = None, *,
         rates = counts / max(1, defect_map.steps)
     return CorrectedRecording(rec.packed_frames, rec.layout, rec.rate_hz, dict(rec.meta),
                               rec.path, defect_map, plan_donors(defect_map, rec.layout, rates))
+
+
+def with_defects(rec: SpikeRecording, option: str | None) -> SpikeRecording:
+    """``rec`` as the ``--defects`` option asks: ``"auto"`` (default, None) corrects with the
+    sidecar's map, else with one estimated from the first 2,000 steps; ``"off"`` leaves the
+    spikes as recorded; anything else is a calibration file (:func:`load_map`)."""
+    from cfsr.defects.defect_map import load_map
+
+    if option == "off":
+        return rec
+    if option in (None, "auto"):
+        return corrected(rec)
+    return corrected(rec, load_map(option, rec.layout.shape))

@@ -17,7 +17,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DefectMap", "DEFECTS_KEY", "MAX_DEFECT_FRACTION", "save_map", "load_map"]
+__all__ = [
+    "DefectMap",
+    "DEFECTS_KEY",
+    "MAX_DEFECT_FRACTION",
+    "save_map",
+    "load_map",
+    "write_to_sidecar",
+]
 
 #: Key of the defect map in a recording's sidecar.
 DEFECTS_KEY = "defects"
@@ -163,3 +170,23 @@ def load_map(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> D
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{p}: unreadable defect map ({exc})") from exc
     return DefectMap.from_dict(obj, shape, where=str(p))
+
+
+def write_to_sidecar(rec: Any, dmap: DefectMap) -> Path:
+    """Store ``dmap`` in the sidecar of ``rec`` (a recording read from a ``.dat`` file), so a
+    replay of it starts corrected; the sidecar is written whole (temporary file + rename),
+    with its other values kept, or made from the recording's geometry if it had none."""
+    from cfsr.sidecar import _sidecar_dict, read_sidecar, sidecar_path, write_json_atomic
+
+    if rec.path is None:
+        raise ValueError("the recording has no file: nowhere to store its defect map")
+    if dmap.shape != rec.layout.shape:
+        raise ValueError(f"defect map {dmap.shape} does not fit the recording "
+                         f"{rec.layout.shape} (H, W)")
+    side = read_sidecar(rec.path)
+    if side is None:
+        side = _sidecar_dict(rec.layout, rec.n_frames, rec.rate_hz, None)
+    side[DEFECTS_KEY] = dmap.to_dict()
+    p = sidecar_path(rec.path)
+    write_json_atomic(p, side)
+    return p

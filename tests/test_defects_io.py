@@ -1,0 +1,78 @@
+"""The defect map in a recording's sidecar and on the command line (info, reconstruct)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cfsr.cli import main
+from cfsr.datfile import SpikeFileError, read_dat, sidecar_path
+from cfsr.defects import map_of
+from cfsr.simulate import Scene, simulate_to_dat
+
+H, W = 48, 64
+
+
+@pytest.fixture
+def dat(tmp_path):
+    """A flat grey wall (rate 0.25) seen by a sensor with hot and dead pixels, 2,400 steps."""
+    path = tmp_path / "defects.dat"
+    simulate_to_dat(Scene("flat", np.full((H, W), 0.5, np.float32)), 2400, path, seed=5,
+                    gt_every=1200, noise="hot_fraction=0.004,hot_rate=0.5,dead_fraction=0.004")
+    return path
+
+
+def _truth(dat):
+    from cfsr.simulate import load_ground_truth
+
+    gt = load_ground_truth(dat)
+    return gt.hot_map, gt.dead_map
+
+
+def test_info_counts_saves_and_exports_the_map_and_a_replay_reads_it_back(dat, tmp_path,
+                                                                        capsys):
+    hot, dead = _truth(dat)
+    cal = tmp_path / "cal.json"
+    assert main(["info", str(dat), "--json", "-q", "--save-defects",
+                 "--export-defects", str(cal)]) == 0
+    info = json.loads(capsys.readouterr().out)["defects"]
+    assert (info["hot"], info["dead"], info["steps"]) == (hot.sum(), dead.sum(), 2000)
+    assert info["sidecar"] is None and len(info["written"]) == 2
+    got = map_of(read_dat(dat))  # from the sidecar, checked on read
+    assert got is not None and np.array_equal(got.hot, hot) and np.array_equal(got.dead, dead)
+    assert json.loads(cal.read_text())["hot"] == got.to_dict()["hot"]
+    assert main(["info", str(dat), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert f"{hot.sum()} hot, {dead.sum()} dead pixels" in out
+    assert "the sidecar's map" in out
+
+
+def test_reconstruct_corrects_by_default_and_off_keeps_the_spikes(dat, tmp_path):
+    hot, dead = _truth(dat)
+    rates = {}
+    for opt in ("auto", "off"):
+        out = tmp_path / opt
+        assert main(["reconstruct", str(dat), "-m", "tfp", "-t", "2200", "-p", "window=160",
+                     "-o", str(out), "-q", "--defects", opt]) == 0
+        rates[opt] = np.load(out / "t2200.npy")
+    bad = hot | dead
+    assert np.abs(rates["off"][bad] - 0.25).max() > 0.2
+    assert np.abs(rates["auto"][bad] - 0.25).max() < 0.03
+    assert np.array_equal(rates["auto"][~bad], rates["off"][~bad])
+
+
+@pytest.mark.parametrize("defects, what", [
+    ({"width": W, "height": H, "hot": [H * W]}, "outside"),
+    ({"width": W + 8, "height": H, "hot": []}, "the recording"),
+    ("everything", "JSON object"),
+])
+def test_a_bad_map_in_a_sidecar_is_refused_with_its_file_and_key(dat, defects, what):
+    side = sidecar_path(dat)
+    meta = json.loads(side.read_text())
+    meta["defects"] = defects
+    side.write_text(json.dumps(meta))
+    with pytest.raises(SpikeFileError, match=f"defects.*{what}|{what}") as ei:
+        read_dat(dat)
+    assert str(side) in str(ei.value)
