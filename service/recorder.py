@@ -8,9 +8,10 @@ A recording never fills the disk: it is capped at ``max_bytes`` (default: the fr
 :data:`RESERVE_BYTES`), refused before it starts when not even one block fits, and stopped
 cleanly when the free space falls under the reserve while it runs (other writers share the
 disk). Whatever stops it (``stop_reason``), the ``.dat`` holds whole frames only and its sidecar
-exists from before the first frame (:class:`~cfsr.datfile.DatWriter` reserves its space), so
-the recording opens with its own geometry even when another writer fills the disk. A recording
-that got no frame is removed (``path`` null in its status).
+exists from before the first frame is on disk (:class:`~cfsr.datfile.DatWriter` reserves its
+space at the start), so the recording opens with its own geometry even when another writer
+fills the disk. A recording that got no frame leaves no file, however it ends: the files get
+their names only with the first frames (:class:`FolderDatWriter`).
 
 The ``.dat`` and its sidecar are created through :mod:`cfsr_live.service.safefs`
 (:class:`FolderDatWriter`):
@@ -65,12 +66,59 @@ def free_bytes(folder: Path | int) -> int:
     return int(shutil.disk_usage(folder).free)
 
 
+class _NameHold:
+    """Holds a recording's name in a folder from the recording's start until its files exist,
+    without a file: an abstract Unix socket named after the folder and the name, which the
+    kernel frees when the process ends in any way (SIGKILL included). Another recorder that
+    wants the same name, in this process or another, is refused (FileExistsError)."""
+
+    def __init__(self, dir_fd: int, name: str) -> None:
+        import hashlib
+        import socket
+
+        st = os.fstat(dir_fd)
+        key = hashlib.sha256(f"{st.st_dev}:{st.st_ino}:{name}".encode()).hexdigest()[:40]
+        self._sock: Any = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            self._sock.bind(f"\0cfsr-recording-{key}")
+        except OSError as exc:
+            self._sock.close()
+            if exc.errno != errno.EADDRINUSE:
+                raise
+            raise FileExistsError(errno.EEXIST, f"{name} is being recorded", name) from None
+
+    def release(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+
+def _unnamed_file(dir_fd: int, flags: int) -> int | None:
+    """A new file in the folder with no name yet (``O_TMPFILE``: it vanishes with the process
+    unless linked), or None where the file system or the system has no such files."""
+    if not hasattr(os, "O_TMPFILE"):
+        return None
+    try:
+        return os.open(".", flags | os.O_TMPFILE | os.O_CLOEXEC, 0o644, dir_fd=dir_fd)
+    except OSError as exc:
+        if exc.errno in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
+            return None
+        raise
+
+
 class FolderDatWriter(DatWriter):
     """A :class:`~cfsr.datfile.DatWriter` whose ``.dat`` and sidecar are created in an open
-    folder (``dir_fd``) with :mod:`cfsr_live.service.safefs`: the ``.dat`` exclusively and never
-    through a link (FileExistsError when ``NAME.dat`` or ``NAME.dat.json`` exists in any form), the
-    sidecar by an atomic rename. Same checks, whole-frame trimming and sidecar as the base
-    class, which opens its file by path (following links, truncating what is there)."""
+    folder (``dir_fd``) with :mod:`cfsr_live.service.safefs`: never through a link
+    (FileExistsError when ``NAME.dat`` or ``NAME.dat.json`` exists in any form), the sidecar
+    by an atomic rename. Same checks, whole-frame trimming and sidecar as the base class,
+    which opens its file by path (following links, truncating what is there).
+
+    The files get their names only with the first frames: until then the ``.dat`` and the
+    reserved sidecar are unnamed files in the folder (``O_TMPFILE``), and the name is held by
+    :class:`_NameHold`. So a recording that got no frame leaves no file however it ends (a
+    SIGKILL before the first block left an empty ``.dat`` that nothing opens), and the
+    ``.dat`` appears with its first frames and its sidecar beside it. Where unnamed files are
+    not available the files are created at once, as before."""
 
     def __init__(
         self,
@@ -89,17 +137,23 @@ class FolderDatWriter(DatWriter):
         self.n_frames = 0
         side = sidecar_path(name).name
         validate_sidecar(_sidecar_dict(layout, 0, self.rate_hz, self.meta), side)
-        if name_taken(dir_fd, side):
-            raise FileExistsError(errno.EEXIST, f"{side} already exists", side)
+        for n in (name, side):
+            if name_taken(dir_fd, n):
+                raise FileExistsError(errno.EEXIST, f"{n} already exists", n)
+        self._side, self._name = side, name
+        self._hold: _NameHold | None = _NameHold(dir_fd, name)
+        self._named = False
         self._dir_fd = os.dup(dir_fd)
+        self._side_fd = -1
         try:
-            fd = create_exclusive(self._dir_fd, name)
+            fd = _unnamed_file(self._dir_fd, os.O_WRONLY)
+            if fd is None:  # no unnamed files here: the name is taken now
+                fd = create_exclusive(self._dir_fd, name)
+                self._named = True
+            self._fh = os.fdopen(fd, "wb", buffering=0)
         except BaseException:
-            os.close(self._dir_fd)
+            self._release_folder()
             raise
-        self._side = side
-        self._name = name
-        self._fh = os.fdopen(fd, "wb", buffering=0)
         try:
             self._reserve_sidecar()  # before the first byte of spikes (removes the .dat if not)
         except BaseException:
@@ -107,7 +161,14 @@ class FolderDatWriter(DatWriter):
             raise
 
     def _put_sidecar(self, data: bytes) -> None:
-        write_bytes_at(self._dir_fd, self._side, data)
+        if self._named:
+            write_bytes_at(self._dir_fd, self._side, data)
+            return
+        # the reserve goes into an unnamed file of its own, linked beside the first frames
+        self._side_fd = _unnamed_file(self._dir_fd, os.O_WRONLY)
+        if self._side_fd is None:
+            raise OSError(errno.EOPNOTSUPP, "no unnamed sidecar file", self._side)
+        _overwrite(self._side_fd, data)
 
     def _put_sidecar_in_place(self, data: bytes) -> None:
         fd = os.open(self._side, os.O_WRONLY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=self._dir_fd)
@@ -116,12 +177,40 @@ class FolderDatWriter(DatWriter):
         finally:
             os.close(fd)
 
+    def write_packed(self, packed) -> None:
+        try:
+            super().write_packed(packed)
+        finally:
+            if not self._named and self.n_frames:
+                self._name_files()
+
+    def _name_files(self) -> None:
+        """Give the files their names (sidecar first: a reader never meets a ``.dat`` without
+        it); neither replaces anything that took a name meanwhile."""
+        for fd, name in ((self._side_fd, self._side), (self._fh.fileno(), self._name)):
+            try:
+                os.link(f"/proc/self/fd/{fd}", name, dst_dir_fd=self._dir_fd,
+                        follow_symlinks=True)
+            except BaseException:
+                if name == self._name:
+                    with contextlib.suppress(OSError):
+                        os.unlink(self._side, dir_fd=self._dir_fd)
+                raise
+        self._named = True
+        os.close(self._side_fd)
+        self._side_fd = -1
+
     def _remove_files(self) -> None:
+        if not self._named:
+            return  # never named: closing them is their end
         for name in (self._name, self._side):
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(name, dir_fd=self._dir_fd)
 
     def close(self) -> None:
+        if not self.n_frames:  # no frame came: nothing to keep (nothing opens an empty .dat)
+            self.discard()
+            return
         try:
             super().close()
         finally:
@@ -134,6 +223,12 @@ class FolderDatWriter(DatWriter):
             self._release_folder()
 
     def _release_folder(self) -> None:
+        if self._side_fd >= 0:
+            os.close(self._side_fd)
+            self._side_fd = -1
+        if self._hold is not None:
+            self._hold.release()
+            self._hold = None
         if self._dir_fd >= 0:
             os.close(self._dir_fd)
             self._dir_fd = -1

@@ -210,7 +210,11 @@ def test_a_recording_that_got_no_frame_leaves_no_file(tmp_path):
     try:
         (tmp_path / "rec").mkdir()
         r = Recorder(ring, tmp_path / "rec" / "e.dat", lay, rate_hz=40_000.0)
-        assert (tmp_path / "rec" / "e.dat.json").exists()  # reserved while it runs
+        # while it waits for frames its files have no names yet (a SIGKILL now leaves
+        # nothing), but the name is held: a second recording of it is refused
+        assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == []
+        with pytest.raises(FileExistsError):
+            Recorder(ring, tmp_path / "rec" / "e.dat", lay, rate_hz=40_000.0)
         st = r.stop()
         assert st.frames == 0 and st.path is None
         assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == []

@@ -178,3 +178,87 @@ def test_a_live_recording_stays_readable_when_another_writer_fills_the_disk(tmp_
             assert got.gain == 0.25
     finally:
         ring.close()
+
+
+_KILLED_WRITER = r"""
+import os, sys
+import numpy as np
+from cfsr.layout import Layout
+from cfsr_live.service.recorder import FolderDatWriter
+lay = Layout(256, 128)
+fd = os.open(sys.argv[1], os.O_RDONLY | os.O_DIRECTORY)
+w = FolderDatWriter(fd, "k.dat", lay, rate_hz=40000.0, meta={"gain": 0.25})
+print("open", flush=True)
+if sys.stdin.readline().strip() == "write":
+    w.write_packed(np.full((3, lay.frame_bytes), 7, np.uint8))
+    print("wrote", flush=True)
+sys.stdin.readline()
+"""
+
+
+def _killed_writer(folder: Path, write: bool) -> None:
+    """A process that opens a recording ``k.dat`` in ``folder`` (and writes 3 frames when
+    ``write``), then is killed by SIGKILL: nothing of it runs after the signal."""
+    from cfsr_live.service.recorder import FolderDatWriter
+
+    p = subprocess.Popen([sys.executable, "-c", _KILLED_WRITER, str(folder)], text=True,
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert p.stdout.readline().strip() == "open"
+        # the name is held while that recording waits for its first frames, though no file
+        # has it yet: a second recording of the name is refused
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            with pytest.raises(FileExistsError):
+                FolderDatWriter(fd, "k.dat", Layout(256, 128), rate_hz=40000.0)
+        finally:
+            os.close(fd)
+        if write:
+            p.stdin.write("write\n")
+            p.stdin.flush()
+            assert p.stdout.readline().strip() == "wrote"
+        p.kill()
+    finally:
+        p.kill()
+        p.wait(60)
+
+
+def test_a_recording_killed_before_its_first_frame_leaves_no_file(tmp_path):
+    """SIGKILL before the first block used to leave an empty .dat (which nothing opens) and a
+    sidecar: the files get their names only with the first frames. Killed after them, the
+    recording opens with its own geometry (its reserved sidecar) and the frames on disk."""
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    _killed_writer(folder, write=False)
+    assert sorted(p.name for p in folder.iterdir()) == []
+    _killed_writer(folder, write=True)  # the name is free again once its holder is gone
+    assert sorted(p.name for p in folder.iterdir()) == ["k.dat", "k.dat.json"]
+    rec = cfsr.read_dat(folder / "k.dat")
+    assert (rec.layout.width, rec.layout.height, rec.n_frames, rec.gain) == (256, 128, 3, 0.25)
+
+
+def test_a_recording_with_no_frame_and_one_with_frames(tmp_path):
+    """Closed with no frame: no file; with frames: the .dat and its final sidecar, and a
+    name that another process took meanwhile is never replaced."""
+    from cfsr_live.service.recorder import FolderDatWriter
+
+    lay = Layout(256, 128)
+    fd = os.open(tmp_path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        w = FolderDatWriter(fd, "a.dat", lay, rate_hz=40000.0)
+        w.close()
+        assert list(tmp_path.iterdir()) == []
+        w = FolderDatWriter(fd, "a.dat", lay, rate_hz=40000.0)
+        w.write_packed(np.zeros((2, lay.frame_bytes), np.uint8))
+        w.close()
+        assert json.loads(sidecar_path(tmp_path / "a.dat").read_text())["n_frames"] == 2
+        assert cfsr.read_dat(tmp_path / "a.dat").n_frames == 2
+        w = FolderDatWriter(fd, "b.dat", lay, rate_hz=40000.0)
+        (tmp_path / "b.dat").write_bytes(b"someone else's")
+        with pytest.raises(FileExistsError):
+            w.write_packed(np.zeros((2, lay.frame_bytes), np.uint8))
+        w.discard()
+        assert (tmp_path / "b.dat").read_bytes() == b"someone else's"
+        assert not (tmp_path / "b.dat.json").exists()
+    finally:
+        os.close(fd)
