@@ -369,12 +369,11 @@ def carried_rows(
     rounds: int = 2,
 ) -> list[dict[str, Any]]:
     """Dense CFSR output (``count`` frames ``stride`` steps apart, one group of
-    :func:`cfsr.methods.cfsr.carry.carry_groups`, carried from frame to frame) against the same
+    :meth:`cfsr.methods.registry.Method.carry_groups`, carried frame to frame) against the same
     frames isolated (memo emptied before each): PSNR of both (whole, motion region), the
     difference, CPU ms per frame of both (median of ``rounds``) and the ratio isolated /
     carried."""
     from cfsr.display import to_display
-    from cfsr.methods.cfsr.carry import carry_groups
     from cfsr.methods.registry import get_method, resolve_params
     from cfsr.simulate import simulate
     from cfsr.spikes import SpikeRecording
@@ -395,7 +394,7 @@ def carried_rows(
         sr = StreamingReconstructor("cfsr", rec.layout, params=params, slack=steps)
         sr.push(rec.packed(0, steps), 0)
         times = [first + stride * i for i in range(count)]
-        if len(carry_groups(times, p)) != 1:
+        if len(m.carry_groups(times, p)) != 1:
             raise ValueError(f"{count} outputs {stride} steps apart do not fit one group")
         gts = [to_display(sim.ideal_rate(t), gain) for t in times]
         masks = [sim.motion_mask(t) for t in times]

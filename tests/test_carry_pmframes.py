@@ -14,6 +14,7 @@ from cfsr.methods import get_method
 from cfsr.methods.cfsr import patchmatch_frames as pmframes
 from cfsr.methods.cfsr import refinement
 from cfsr.methods.cfsr.patchmatch_frames import TILE, pm_frames
+from cfsr.methods.cfsr.settings import CfsrSettings
 from cfsr.methods.registry import resolve_params
 from cfsr.metrics import psnr
 from cfsr.simulate import simulate
@@ -45,7 +46,7 @@ def test_banked_frames_are_the_computed_ones(disk):
     box = (16, 72, 24, 112)
     bank: dict = {}
     first = [150, 153, 156, 159]
-    raw0, guide0 = pm_frames(src, first, box, p, tiles, bank=bank, shift=1000)
+    raw0, guide0 = pm_frames(src, first, box, CfsrSettings.of(p), tiles, bank=bank, shift=1000)
     assert sorted(bank["times"].tolist()) == [1150, 1153, 1156, 1159]
     later = [151, 153, 159, 162]  # two banked steps, two new ones
     calls = []
@@ -57,22 +58,22 @@ def test_banked_frames_are_the_computed_ones(disk):
 
     pmframes._computed = spy
     try:
-        raw1, guide1 = pm_frames(src, later, box, p, small, bank=bank, shift=1000)
+        raw1, guide1 = pm_frames(src, later, box, CfsrSettings.of(p), small, bank=bank, shift=1000)
     finally:
         pmframes._computed = kernel
     assert calls == [[151, 162]]  # only the frames the bank does not hold
-    fresh_raw, fresh_guide = pm_frames(src, later, box, p, small)
+    fresh_raw, fresh_guide = pm_frames(src, later, box, CfsrSettings.of(p), small)
     np.testing.assert_array_equal(raw1, fresh_raw)
     np.testing.assert_array_equal(guide1, fresh_guide)
     # the first call's frames are the isolated ones (a bank changes nothing on its own)
-    plain_raw, plain_guide = pm_frames(src, first, box, p, tiles)
+    plain_raw, plain_guide = pm_frames(src, first, box, CfsrSettings.of(p), tiles)
     np.testing.assert_array_equal(raw0, plain_raw)
     np.testing.assert_array_equal(guide0, plain_guide)
     # more tiles than the bank computed: nothing taken from it
     calls.clear()
     pmframes._computed = spy
     try:
-        pm_frames(src, later, box, p, np.ones_like(tiles), bank=bank, shift=1000)
+        pm_frames(src, later, box, CfsrSettings.of(p), np.ones_like(tiles), bank=bank, shift=1000)
     finally:
         pmframes._computed = kernel
     assert calls == [sorted(later)]

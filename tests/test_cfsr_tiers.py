@@ -10,7 +10,7 @@ from cfsr.config import MethodConfig
 from cfsr.display import to_display
 from cfsr.methods import get_method
 from cfsr.methods.cfsr.carry import carry_groups
-from cfsr.methods.cfsr.pipeline import cfsr_window
+from cfsr.methods.cfsr.settings import CfsrSettings
 from cfsr.methods.cfsr.tiers import QUALITY_TIERS, effective_params, fast_config
 from cfsr.methods.registry import resolve_params
 from cfsr.metrics import psnr
@@ -66,7 +66,7 @@ def test_window_follows_the_effective_settings():
     full = MethodConfig("cfsr")
     fast = fast_config(full)
     assert fast.params["quality"] == "fast" and fast.method == "cfsr"
-    assert fast.window == cfsr_window({**full.params, **QUALITY_TIERS["fast"]})
+    assert fast.window == get_method("cfsr").window({**full.params, **QUALITY_TIERS["fast"]})
     assert fast.window != full.window  # the still reach and the history are shorter
     assert fast_config(MethodConfig("tfp")) == MethodConfig("tfp")
     with pytest.raises(ValueError, match="quality"):
@@ -94,15 +94,16 @@ def test_fast_within_its_bars_and_above_csr(scenes, scene):
 def test_carry_groups_partition_by_span_and_gap():
     p = resolve_params(get_method("cfsr"), {"carry_span": 256, "carry_gap": 40})
     times = [900, 10, 40, 40, 70, 130, 250, 260, 290, 600]
-    groups = carry_groups(times, p)
+    groups = carry_groups(times, CfsrSettings.of(p))
     assert [t for g in groups for t in g] == sorted(set(times))
     assert groups == [[10, 40, 70], [130], [250], [260, 290], [600], [900]]
     for g in groups:  # one span, consecutive gaps within carry_gap
         assert len({t // 256 for t in g}) == 1
         assert all(0 < b - a <= 40 for a, b in zip(g, g[1:], strict=False))
-    assert carry_groups(times, {**p, "carry_span": 0}) == [[t] for t in sorted(set(times))]
+    alone = CfsrSettings.of({**p, "carry_span": 0})
+    assert carry_groups(times, alone) == [[t] for t in sorted(set(times))]
     # the rule sees only the steps: a subset of a group's steps never joins two groups
-    assert get_method("cfsr").carry_groups(times, p) == groups
+    assert get_method("cfsr").carry_groups(times, CfsrSettings.of(p)) == groups
     assert get_method("tfp").carry_groups([5, 1, 5], resolve_params(get_method("tfp"))) == [
         [1],
         [5],
@@ -112,7 +113,7 @@ def test_carry_groups_partition_by_span_and_gap():
 def test_carried_outputs_stay_close_to_isolated_ones(scenes):
     rec, gain, gts, masks = scenes["disk"]
     times = list(range(608, 1001, 32))  # one span of 512 steps, 32 steps apart
-    assert len(carry_groups(times, resolve_params(get_method("cfsr")))) == 1
+    assert len(carry_groups(times, CfsrSettings.of(resolve_params(get_method("cfsr"))))) == 1
     carried = cfsr.reconstruct(rec, "cfsr", times)
     isolated = _isolated(rec, times)
     # the first output of a group is the isolated one, bit for bit

@@ -18,13 +18,14 @@ import pytest
 import cfsr
 from cfsr._words import PackedWindow
 from cfsr.methods.cfsr import history
-from cfsr.methods.cfsr.coarse import csr_frames, span_estimator, static_length
+from cfsr.methods.cfsr.coarse import CsrSettings, csr_frames, span_estimator, static_length
 from cfsr.methods.cfsr.daisi import daisi_strength
 from cfsr.methods.cfsr.fine_mask import fine_mask
 from cfsr.methods.cfsr.history import history_scan, tfi_at
 from cfsr.methods.cfsr.mog import history_objects
 from cfsr.methods.cfsr.mog_two_sided import SharpRate
 from cfsr.methods.cfsr.patchmatch_frames import TILE, pm_frames, pm_tiles
+from cfsr.methods.cfsr.settings import CfsrSettings
 from cfsr.methods.registry import get_method, resolve_params
 from cfsr.methods.tfi import tfi_rate
 from cfsr.methods.tfp import static_rate, tfp_rate
@@ -66,19 +67,20 @@ def test_history_scan_equals_stand_alone_kernels(trial):
     )
     c = int(rng.integers(0, n))
     src = PackedWindow.from_frames(s)
-    got = history_scan(src, c, p)
+    got = history_scan(src, c, CfsrSettings.of(p))
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     cs = [x for x in cs if x >= 0]
     # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
     hp = {**p, "tfp_window": p["mog_window"], "static_span": 0, "distinction": "isi_set"}
-    rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
+    hs = CsrSettings.of({**hp, "static_estimator": p["mog_estimator"]})
+    rates, masks, _ = csr_frames(s, cs, hs)
     np.testing.assert_array_equal(got.rates, rates)
     np.testing.assert_array_equal(got.coarse, masks[-1])
     np.testing.assert_array_equal(_tfi_at_t(got, src, c, p), tfi_rate(s, c, max_isi=p["max_isi"]))
     want_tfp = static_rate(
         s,
         c,
-        window=static_length(p),
+        window=static_length(CfsrSettings.of(p)),
         mode=p["tfp_mode"],
         estimator=p["static_estimator"],
         max_isi=p["max_isi"],
@@ -95,18 +97,18 @@ def test_mog_only_where_the_history_varies_finds_the_same_objects():
     u8[-1, 10:18, 30:41] = 250  # an object appears
     u8[4:8, 30:35, 2:9] = 5  # a passing shadow in the history
     p = _params()
-    full = history_objects(u8, 20.0, False, p, 12)
-    fast = history_objects(u8, 20.0, True, p, 12)
+    full = history_objects(u8, 20.0, False, CfsrSettings.of(p), 12)
+    fast = history_objects(u8, 20.0, True, CfsrSettings.of(p), 12)
     np.testing.assert_array_equal(fast, full)
     assert full[10:18, 30:41].all()
     still = np.repeat(u8[:1], 12, axis=0)
-    assert not history_objects(still, 20.0, True, p, 12).any()
+    assert not history_objects(still, 20.0, True, CfsrSettings.of(p), 12).any()
     # the two-sided test (f: a sharp rate at t, not a history frame) on the varying pixels
     # gathered into one row finds what MOG on the whole frame finds
     rate = rng.random((40, 60)).astype(np.float32)
     sharp = SharpRate(rate, np.full((40, 60), 4, np.int32), u8[-1] / np.float32(255), 16)
-    full = history_objects(u8, 20.0, False, p, 12, sharp, 1.0)
-    fast = history_objects(u8, 20.0, True, p, 12, sharp, 1.0)
+    full = history_objects(u8, 20.0, False, CfsrSettings.of(p), 12, sharp, 1.0)
+    fast = history_objects(u8, 20.0, True, CfsrSettings.of(p), 12, sharp, 1.0)
     np.testing.assert_array_equal(fast, full)
     assert full.any() and not full.all()
 
@@ -211,8 +213,8 @@ def test_static_tiles_take_their_frame_at_t_as_history_and_no_daisi():
     c = 700
     active = np.zeros((64, 96), bool)
     active[8:56, 20:76] = True
-    whole = history_scan(src, c, p)
-    tiled = history_scan(src, c, p, active)
+    whole = history_scan(src, c, CfsrSettings.of(p))
+    tiled = history_scan(src, c, CfsrSettings.of(p), active)
     np.testing.assert_array_equal(tiled.tfp, whole.tfp)
     np.testing.assert_array_equal(tiled.daisi[active], whole.daisi[active])
     assert not tiled.daisi[~active].any() and whole.daisi[~active].any()
@@ -269,21 +271,23 @@ def test_history_scan_of_a_static_window_takes_the_static_pass_and_equals_the_ke
     with monkeypatch.context() as mp:
         mp.setattr(history, "dynamic_kernel", second_pass)
         src = PackedWindow.from_frames(s)
-        got = history_scan(src, c, p)
+        got = history_scan(src, c, CfsrSettings.of(p))
     assert not got.coarse.any()
     cs = [c - k * p["mog_stride"] for k in range(p["mog_frames"] - 1, -1, -1)]
     # the history frames are the paper's CSR frames (Eq. 5-7) on mog_window-step spans
     hp = {**p, "tfp_window": p["mog_window"], "static_span": 0, "distinction": "isi_set"}
-    rates, masks, _ = csr_frames(s, cs, {**hp, "static_estimator": p["mog_estimator"]})
+    hs = CsrSettings.of({**hp, "static_estimator": p["mog_estimator"]})
+    rates, masks, _ = csr_frames(s, cs, hs)
     assert not masks.any()
     np.testing.assert_array_equal(got.rates, rates)
     np.testing.assert_array_equal(_tfi_at_t(got, src, c, p), tfi_rate(s, c, max_isi=p["max_isi"]))
     want_tfp = static_rate(
         s,
         c,
-        window=static_length(p),
+        window=static_length(CfsrSettings.of(p)),
         mode=p["tfp_mode"],
-        estimator=span_estimator(p),  # the span rule; fine_stage applies the steady check
+        # the span rule; fine_stage applies the steady check
+        estimator=span_estimator(CfsrSettings.of(p)),
         max_isi=p["max_isi"],
     )
     np.testing.assert_array_equal(got.tfp, want_tfp)
@@ -317,8 +321,8 @@ def test_patchmatch_frames_on_tiles_equal_the_whole_box_where_computed():
     # a box starting on a tile row computes exactly the marked tiles; one starting inside a
     # tile row computes every crop row band that touches a marked tile (a superset)
     for box in [(16, 70, 3, 90), (5, 70, 3, 90)]:
-        raw_t, _ = pm_frames(src, cs, box, p, tiles)
-        raw_b, _ = pm_frames(src, cs, box, p)
+        raw_t, _ = pm_frames(src, cs, box, CfsrSettings.of(p), tiles)
+        raw_b, _ = pm_frames(src, cs, box, CfsrSettings.of(p))
         px = np.kron(tiles, np.ones((TILE, TILE), bool))[box[0] : box[1], box[2] : box[3]]
         np.testing.assert_array_equal(raw_t[:, px], raw_b[:, px])
         if box[0] % TILE == 0:  # unmarked tiles hold NaN (never matched): not computed

@@ -435,12 +435,15 @@ def test_paper_presets_keep_eq9_on_the_past():
 
 def test_every_method_reads_typed_settings_holding_exactly_its_parameters():
     """One source of names: each method's settings type has one field per Param of its
-    table, typed as the default; built from resolved values, it holds them as they are."""
+    table, typed as the default (a choice by the StrEnum of its choices); built from resolved
+    values, it holds them as they are, and the registry builds it once per parameter set."""
     import dataclasses
+    import typing
+    from enum import StrEnum
 
     from cfsr.methods.registry import (
         Method,
-        Settings,
+        MethodSettings,
         get_method,
         methods,
         register,
@@ -450,13 +453,20 @@ def test_every_method_reads_typed_settings_holding_exactly_its_parameters():
     for name in methods():
         m = get_method(name)
         assert m.settings is not None, name
-        fields = {f.name: f.type for f in dataclasses.fields(m.settings)}
-        assert set(fields) == set(m.params), name
+        hints = typing.get_type_hints(m.settings)
+        assert {f.name for f in dataclasses.fields(m.settings)} == set(m.params), name
         for k, prm in m.params.items():
-            assert fields[k] == type(prm.default).__name__, (name, k)
+            if prm.choices is None:
+                assert hints[k] is type(prm.default), (name, k)
+            else:
+                assert issubclass(hints[k], StrEnum), (name, k)
+                assert tuple(c.value for c in hints[k]) == prm.choices, (name, k)
         p = resolve_params(m)
         s = m.settings.of(p)
         assert m.settings.of(s) is s
+        assert m.settings_of(dict(p)) is m.settings_of(p) == m.settings_of(s)
+        with pytest.raises(TypeError):  # a value of another type is resolved first
+            m.settings.of({**p, next(k for k in p if type(p[k]) is int): 1.5})
         if name != "cfsr":  # cfsr's settings take its quality tier (test_cfsr_tiers)
             assert dataclasses.asdict(s) == p
         with pytest.raises(dataclasses.FrozenInstanceError):
@@ -465,7 +475,7 @@ def test_every_method_reads_typed_settings_holding_exactly_its_parameters():
             m.settings.of({})  # a partial set is resolved first, never guessed
 
     @dataclasses.dataclass(frozen=True)
-    class Short(Settings):
+    class Short(MethodSettings):
         max_isi: int
 
     tfi = get_method("tfi")
@@ -488,16 +498,15 @@ def test_cfsr_settings_take_the_quality_tier():
 
 
 def test_pm_offsets_near_then_far_and_the_window_reaches_the_last():
-    from cfsr.methods.cfsr.pipeline import cfsr_window
-    from cfsr.methods.cfsr.settings import pm_offsets
+    from cfsr.methods.cfsr.settings import CfsrSettings, pm_offsets
     from cfsr.methods.registry import get_method, resolve_params
 
     m = get_method("cfsr")
     p = resolve_params(m, {"pm_step": 2, "pm_count": 15, "pm_far_count": 2, "pm_far_step": 9})
-    assert pm_offsets(p) == (*range(2, 31, 2), 39, 48)
-    assert pm_offsets({**p, "pm_count": 0}) == (9, 18)
+    assert pm_offsets(CfsrSettings.of(p)) == (*range(2, 31, 2), 39, 48)
+    assert pm_offsets(CfsrSettings.of({**p, "pm_count": 0})) == (9, 18)
     base = resolve_params(m, {"pm_step": 2, "pm_count": 24, "still_reach": 0, "slow_reach": 0,
                               "mog_sides": "past"})
     far = {**base, "pm_count": 15, "pm_far_count": 2, "pm_far_step": 9}
     # the frame's window reads the last target's TFI: 48 + max_isi steps on each side
-    assert cfsr_window(far)[1] == cfsr_window(base)[1] == 48 + base["max_isi"]
+    assert m.window(far)[1] == m.window(base)[1] == 48 + base["max_isi"]

@@ -7,7 +7,14 @@ import pytest
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods.cfsr.slow_motion import HALVES, SLOW_PARAMS, slow_class, slow_fuse, slow_rates
+from cfsr.methods.cfsr.slow_motion import (
+    HALVES,
+    SLOW_PARAMS,
+    SlowSettings,
+    slow_class,
+    slow_fuse,
+    slow_rates,
+)
 from cfsr.simulate import make_scene, simulate
 
 H, W = 48, 64
@@ -121,24 +128,24 @@ def test_fuse_rules():
     rate = np.full((H, W), 0.123, np.float32)
     p = {**_WINDOW_RULES, "slow_region_weight": 0.0,  # the slow class: test_slow_class
          "slow_region_noise": 0.0}
-    assert slow_fuse(src, 300, rate, None, {**p, "slow_reach": 0}) is rate
+    assert slow_fuse(src, 300, rate, None, SlowSettings.of({**p, "slow_reach": 0})) is rate
     # temporal noise breaks the exact bounds: the stage stands aside
-    assert slow_fuse(src, 300, rate, None, p, noise=0.2) is rate
+    assert slow_fuse(src, 300, rate, None, SlowSettings.of(p), noise=0.2) is rate
     slow, half, count = slow_rates(src, 300, np.ones((H, W), bool), reach=128)
-    out = slow_fuse(src, 300, rate, None, p)
+    out = slow_fuse(src, 300, rate, None, SlowSettings.of(p))
     took = (half >= 8) & (count - 1 >= 4)
     assert took.any() and (~took).any()
     np.testing.assert_array_equal(out[took], slow[took])
     np.testing.assert_array_equal(out[~took], rate[~took])
     fine = np.zeros((H, W), bool)
     fine[:, : W // 2] = True
-    out = slow_fuse(src, 300, rate, fine, p)
+    out = slow_fuse(src, 300, rate, fine, SlowSettings.of(p))
     inner = fine & (half >= 32) & (count - 1 >= 12)
     np.testing.assert_allclose(out[inner], 0.5 * (slow[inner] + 0.123), rtol=1e-6)
     np.testing.assert_array_equal(out[fine & ~inner], rate[fine & ~inner])
     np.testing.assert_array_equal(out[~fine & took], slow[~fine & took])
     # from slow_fine_full on, the window's rate replaces PatchMatch's
-    out = slow_fuse(src, 300, rate, fine, {**p, "slow_fine_full": 64})
+    out = slow_fuse(src, 300, rate, fine, SlowSettings.of({**p, "slow_fine_full": 64}))
     full = inner & (half >= 64)
     assert full.any()
     np.testing.assert_array_equal(out[full], slow[full])
@@ -154,35 +161,38 @@ def test_slow_class():
     slow, half, count = slow_rates(src, 300, everywhere, reach=128)
     fine = np.zeros((H, W), bool)
     fine[:, : W // 2] = True
-    cls = slow_class(half, count - 1, fine, everywhere, p)
+    cls = slow_class(half, count - 1, fine, everywhere, SlowSettings.of(p))
     # the class: long windows in a square of nearly all long windows, inside the fine region
     assert cls.any() and not cls[~fine].any()
     assert (half[cls] >= 16).all() and (count[cls] - 1 >= 6).all()
-    assert not slow_class(half, count - 1, fine, everywhere, {**p, "slow_region": 0}).any()
+    no_region = SlowSettings.of({**p, "slow_region": 0})
+    assert not slow_class(half, count - 1, fine, everywhere, no_region).any()
     # a lone long window among short ones is not slow: every other pixel's window cut short
     short = np.where(np.arange(W)[None, :] % 2 == 0, half, 2)
-    assert not slow_class(short, count - 1, fine, everywhere, p).any()
+    assert not slow_class(short, count - 1, fine, everywhere, SlowSettings.of(p)).any()
     # PatchMatch's rate as rough as the windows': the class moves halfway to the window's rate
     rate = (slow + np.float32(0.01)).astype(np.float32)
     inner = fine & (half >= 32) & (count - 1 >= 12)
     base = np.where(inner, np.float32(0.5), np.float32(0.0))
     wgt = np.where(cls, base + (1 - base) * 0.5, base)
-    out = slow_fuse(src, 300, rate, fine, p)
+    out = slow_fuse(src, 300, rate, fine, SlowSettings.of(p))
     np.testing.assert_allclose(out[fine], (wgt * slow + (1 - wgt) * rate)[fine], atol=1e-6)
-    off = slow_fuse(src, 300, rate, fine, {**p, "slow_region_weight": 0.0})
+    off = slow_fuse(src, 300, rate, fine, SlowSettings.of({**p, "slow_region_weight": 0.0}))
     assert np.abs(out - off)[cls & ~inner].max() > 0.004
     np.testing.assert_array_equal(out[~cls], off[~cls])
     # temporal noise above slow_noise: only the slow class is left, up to slow_region_noise
-    noisy = slow_fuse(src, 300, rate, fine, {**p, "slow_region_noise": 0.5}, noise=0.2)
+    region_noise = SlowSettings.of({**p, "slow_region_noise": 0.5})
+    noisy = slow_fuse(src, 300, rate, fine, region_noise, noise=0.2)
     np.testing.assert_allclose(noisy[cls], (0.5 * slow + 0.5 * rate)[cls], atol=1e-6)
     np.testing.assert_array_equal(noisy[~cls], rate[~cls])
-    assert slow_fuse(src, 300, rate, fine, {**p, "slow_region_noise": 0.1}, noise=0.2) is rate
-    assert slow_fuse(src, 300, rate, None, {**p, "slow_region_noise": 0.5}, noise=0.2) is rate
+    low_noise = SlowSettings.of({**p, "slow_region_noise": 0.1})
+    assert slow_fuse(src, 300, rate, fine, low_noise, noise=0.2) is rate
+    assert slow_fuse(src, 300, rate, None, region_noise, noise=0.2) is rate
     # a smooth PatchMatch rate (the windows keep a fixed-pattern spread): the class is off
     flat = np.full((H, W), 0.123, np.float32)
     np.testing.assert_array_equal(
-        slow_fuse(src, 300, flat, fine, p),
-        slow_fuse(src, 300, flat, fine, {**p, "slow_region_weight": 0.0}),
+        slow_fuse(src, 300, flat, fine, SlowSettings.of(p)),
+        slow_fuse(src, 300, flat, fine, SlowSettings.of({**p, "slow_region_weight": 0.0})),
     )
 
 

@@ -107,7 +107,7 @@ def test_csr_packed_path_equals_unpacked(params):
     """The packed CSR path (used by the library and the live worker) equals csr_frames."""
     from cfsr._bits import pack_frames
     from cfsr.layout import Layout
-    from cfsr.methods.cfsr.coarse import csr_frame_packed, csr_frames
+    from cfsr.methods.cfsr.coarse import CsrSettings, csr_frame_packed, csr_frames
     from cfsr.methods.registry import get_method, resolve_params
 
     rng = np.random.default_rng(7)
@@ -122,8 +122,8 @@ def test_csr_packed_path_equals_unpacked(params):
     pk = pack_frames(s)
     p = resolve_params(get_method("csr"), params)
     for c in (0, 150, 350, 699):
-        rates, masks, _ = csr_frames(s, [c], p)
-        r, m = csr_frame_packed(pk, lay, c, p)
+        rates, masks, _ = csr_frames(s, [c], CsrSettings.of(p))
+        r, m = csr_frame_packed(pk, lay, c, CsrSettings.of(p))
         np.testing.assert_array_equal(m, masks[0])
         np.testing.assert_array_equal(r, rates[0])
     assert masks[0].any() and not masks[0].all()

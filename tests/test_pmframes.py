@@ -18,6 +18,7 @@ import pytest
 
 from cfsr._words import PackedWindow
 from cfsr.methods.cfsr.patchmatch_frames import pm_frames
+from cfsr.methods.cfsr.settings import CfsrSettings
 from cfsr.methods.registry import get_method, resolve_params
 from cfsr.methods.tfa import adaptive_rates, grow_span
 from cfsr.methods.tfi import tfi_rates
@@ -61,7 +62,7 @@ def _centers(rng, n):
 
 
 def _check(s, cs, box, p, tiles=None):
-    raw, guide = pm_frames(PackedWindow.from_frames(s), cs, box, p, tiles)
+    raw, guide = pm_frames(PackedWindow.from_frames(s), cs, box, CfsrSettings.of(p), tiles)
     crop = np.ascontiguousarray(s[:, box[0] : box[1], box[2] : box[3]])
     want = tfi_rates(crop, cs, max_isi=p["max_isi"])
     np.testing.assert_array_equal(raw, want)

@@ -137,14 +137,13 @@ def test_still_pixels_on_a_window_match_the_pixel_rule():
 
 def test_the_paper_presets_have_no_still_pixels():
     from cfsr.methods.cfsr.params import FINE_PARAMS, FINE_PRESETS
-    from cfsr.methods.cfsr.pipeline import cfsr_window
     from cfsr.methods.registry import get_method, resolve_params
 
     assert FINE_PRESETS["paper"]["still_reach"] == 0
     assert FINE_PRESETS["simulated"]["still_reach"] == 0
     assert FINE_PARAMS["still_reach"].default > 0
     p = resolve_params(get_method("cfsr"), {"mog_sides": "past"}, None)
-    before, after = cfsr_window(p)
+    before, after = get_method("cfsr").window(p)
     assert before >= p["still_reach"] and after >= p["still_reach"]
     q = resolve_params(get_method("cfsr"), {"mog_sides": "past", "still_reach": 0}, None)
-    assert cfsr_window(q)[1] < after
+    assert get_method("cfsr").window(q)[1] < after

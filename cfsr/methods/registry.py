@@ -11,9 +11,11 @@ streaming path (:class:`cfsr.StreamingReconstructor`) give identical numbers by 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping, MutableMapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, fields
-from typing import Any, Self
+from enum import StrEnum
+from functools import cache
+from typing import Any, Self, get_type_hints
 
 import numpy as np
 
@@ -22,8 +24,11 @@ from cfsr.layout import STEP_RATE_HZ
 __all__ = [
     "MAX_UNPACKED_STEPS",
     "MAX_WINDOW_STEPS",
+    "Memo",
+    "MethodSettings",
     "Param",
-    "Settings",
+    "ParamValue",
+    "Params",
     "Method",
     "Output",
     "register",
@@ -42,6 +47,22 @@ MAX_WINDOW_STEPS = STEP_RATE_HZ
 #: whole window to one byte per pixel per step, 100 kB per step on a 400 x 250 sensor, so
 #: 0.1 s (4,000 steps) already costs 400 MB per frame.
 MAX_UNPACKED_STEPS = STEP_RATE_HZ // 10
+
+
+#: A parameter's value as it comes from outside (API, CLI, library call, preset), before
+#: :func:`resolve_params` checks it.
+ParamValue = bool | int | float | str
+#: Parameter values by name: the untyped form, checked and turned into a method's
+#: :class:`MethodSettings` by the registry.
+Params = Mapping[str, ParamValue]
+#: What a recurrent method keeps between the outputs of one stream (:attr:`Method.recurrent`).
+Memo = dict[str, object]
+
+
+def choices_of(kind: type[StrEnum]) -> tuple[str, ...]:
+    """A choice parameter's accepted values, in the order of the StrEnum that types them in
+    the method's settings (the Param table keeps plain text, the settings the members)."""
+    return tuple(member.value for member in kind)
 
 
 def _is_number(kind: type) -> bool:
@@ -195,10 +216,12 @@ def _convert(kind: type, value: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class Settings:
+class MethodSettings:
     """Base of a method's typed settings: a frozen dataclass with one field per parameter of
-    the method's Param table, exactly (:func:`register` checks the names), built once per
-    frame from the resolved values (:meth:`of`) so that the pipeline reads attributes.
+    the method's Param table, exactly (:func:`register` checks the names). The registry builds
+    it from the resolved values (:meth:`of`) and hands it to the method's ``window`` and
+    ``compute``, so that the pipeline reads typed attributes: a choice parameter's field is
+    typed by a StrEnum and holds its member, a number's is an int or float.
 
     Subclasses declare the fields with their types and no defaults: the defaults, ranges and
     units stay in the Param table, the one source of them.
@@ -210,21 +233,68 @@ class Settings:
         return frozenset(f.name for f in fields(cls))
 
     @classmethod
-    def of(cls, p: Mapping[str, Any] | Settings) -> Self:
+    def of(cls, p: Params | MethodSettings) -> Self:
         """``p`` as this type: an instance as it is, else its fields taken from ``p`` (a
         mapping of resolved values, :func:`resolve_params`, or a settings object of another
         method that holds them); other names in ``p`` are ignored. A missing name raises
-        KeyError (a partial parameter set has no meaning here: resolve it first)."""
+        KeyError (a partial parameter set has no meaning here: resolve it first); a value
+        of another type than its field's raises TypeError (resolve it first)."""
         if isinstance(p, cls):
             return p
-        if isinstance(p, Settings):
+        if isinstance(p, MethodSettings):
             return cls(**{f.name: getattr(p, f.name) for f in fields(cls)})
-        return cls(**{f.name: p[f.name] for f in fields(cls)})
+        kinds = _field_kinds(cls)
+        return cls(**{name: _typed(name, kind, p[name]) for name, kind in kinds.items()})
 
-    def pick(self, *names: str) -> dict[str, Any]:
+    def pick(self, *names: str) -> dict[str, ParamValue]:
         """``{name: value}`` of ``names``: the keywords of a stage function whose parameters
         are named as the method's."""
         return {name: getattr(self, name) for name in names}
+
+
+@cache
+def _field_kinds(cls: type[MethodSettings]) -> dict[str, type]:
+    """Each field of a settings type with its type (``bool``, ``int``, ``float`` or a
+    StrEnum)."""
+    hints = get_type_hints(cls)
+    return {f.name: hints[f.name] for f in fields(cls)}
+
+
+def _typed(name: str, kind: type, value: ParamValue) -> ParamValue:
+    """A resolved value as its settings field's type: a StrEnum field takes the member of its
+    text; numbers and switches must have their field's type already (resolved values do)."""
+    if isinstance(kind, type) and issubclass(kind, StrEnum):
+        return kind(value)
+    if kind is bool and isinstance(value, bool | np.bool_):
+        return bool(value)
+    if kind is int and isinstance(value, int | np.integer) and not isinstance(value, bool):
+        return int(value)
+    number = isinstance(value, int | float | np.number) and not isinstance(value, bool)
+    if kind is float and number:
+        return float(value)
+    raise TypeError(f"setting {name}={value!r}: expected {kind.__name__} (resolve it first)")
+
+
+class _TypedCall:
+    """A method's function called with its settings: the argument at ``index`` (resolved
+    parameters, or the settings already) becomes the method's :class:`MethodSettings`
+    (:meth:`Method.settings_of`) before the call."""
+
+    def __init__(self, fn: Callable[..., Any], index: int, method: Method) -> None:
+        self.__wrapped__ = fn
+        self._index = index
+        self._method = method
+
+    def __call__(self, *args: Any, **kw: Any) -> Any:
+        a = list(args)
+        a[self._index] = self._method.settings_of(a[self._index])
+        return self.__wrapped__(*a, **kw)
+
+
+#: Settings built from resolved parameters, by settings type and values: a stream's frames
+#: share one parameter set, so each is typed once (bounded: a sweep's sets are dropped).
+_TYPED: dict[tuple[type, tuple[tuple[str, ParamValue], ...]], MethodSettings] = {}
+_TYPED_MAX = 256
 
 
 @dataclass
@@ -239,9 +309,14 @@ class Output:
     masks: dict[str, np.ndarray] = field(default_factory=dict)
 
 
-ComputeFn = Callable[[np.ndarray, int, int, Mapping[str, Any]], Output]
-PackedComputeFn = Callable[[np.ndarray, Any, int, int, Mapping[str, Any]], Output]
-WindowFn = Callable[[Mapping[str, Any]], tuple[int, int]]
+#: ``(window, center, start_step, settings) -> Output``
+ComputeFn = Callable[..., Output]
+#: ``(packed_window, layout, center, start_step, settings) -> Output``
+PackedComputeFn = Callable[..., Output]
+#: ``settings -> (before, after)``
+WindowFn = Callable[..., tuple[int, int]]
+#: ``(times, settings) -> groups of steps``
+GroupsFn = Callable[..., list[list[int]]]
 
 
 @dataclass(frozen=True)
@@ -257,9 +332,9 @@ class Method:
     params : mapping of str to Param
         Parameters with their defaults (our calibrated defaults).
     window : callable
-        ``params -> (before, after)``: steps needed before and after ``t``.
+        ``settings -> (before, after)``: steps needed before and after ``t``.
     compute : callable
-        ``(window, center, start_step, params) -> Output``.
+        ``(window, center, start_step, settings) -> Output``.
     masks : tuple of str
         Names of the masks this method returns.
     presets : mapping
@@ -267,7 +342,7 @@ class Method:
     reference : str
         Paper equation or publication implemented.
     compute_packed : callable, optional
-        ``(packed_window, layout, center, start_step, params) -> Output``: the same result as
+        ``(packed_window, layout, center, start_step, settings) -> Output``: the same result as
         ``compute`` computed straight from packed frames (no unpacking). When present, the
         library and the streaming reconstructor use it; tests check both agree exactly.
     recurrent : bool
@@ -278,10 +353,13 @@ class Method:
         the same with or without it; CFSR's carried outputs differ slightly from isolated ones
         (under 0.1 dB, docs/methods.md): for them the contract is :meth:`carry_groups`.
     groups : callable, optional
-        ``(times, params) -> list of lists of steps``: :meth:`carry_groups` for this method.
-    settings : Settings subclass, optional
-        The method's typed settings (:class:`Settings`): its field names are exactly the
-        names of ``params`` (checked by :func:`register`).
+        ``(times, settings) -> list of lists of steps``: :meth:`carry_groups` for this method.
+    settings : MethodSettings subclass, optional
+        The method's typed settings (:class:`MethodSettings`): its field names are exactly
+        the names of ``params`` (checked by :func:`register`). With it, ``window``,
+        ``compute``, ``compute_packed`` and ``groups`` take the settings: the registry types
+        the resolved parameters at this boundary (:meth:`settings_of`), once per parameter
+        set, so that callers pass either. Without it they take the resolved parameters.
     max_window : int, optional
         Most steps ``before + after`` (default: see :attr:`max_span`).
     """
@@ -292,15 +370,44 @@ class Method:
     window: WindowFn
     compute: ComputeFn
     masks: tuple[str, ...] = ()
-    presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    presets: Mapping[str, Params] = field(default_factory=dict)
     reference: str = ""
     compute_packed: PackedComputeFn | None = None
     recurrent: bool = False
     max_window: int | None = None
-    groups: Callable[[Iterable[int], Mapping[str, Any]], list[list[int]]] | None = None
-    settings: type[Settings] | None = None
+    groups: GroupsFn | None = None
+    settings: type[MethodSettings] | None = None
 
-    def carry_groups(self, times: Iterable[int], params: Mapping[str, Any]) -> list[list[int]]:
+    def __post_init__(self) -> None:
+        if self.settings is None:
+            return
+        # where each function takes its settings: (window) (..., start, settings) (times, settings)
+        for name, index in (("window", 0), ("compute", 3), ("compute_packed", 4), ("groups", 1)):
+            fn = getattr(self, name)
+            if fn is not None:
+                object.__setattr__(self, name, _TypedCall(fn, index, self))
+
+    def settings_of(self, params: Params | MethodSettings) -> Any:
+        """``params`` (resolved, :func:`resolve_params`) as this method's settings, built once
+        per parameter set; settings as they are; ``params`` itself without a settings type."""
+        kind = self.settings
+        if kind is None or isinstance(params, kind):
+            return params
+        if isinstance(params, MethodSettings):
+            return kind.of(params)
+        key = (kind, tuple(sorted(params.items())))
+        try:
+            return _TYPED[key]
+        except KeyError:
+            pass
+        except TypeError:  # a value that cannot be a key (not a resolved one): typed as it is
+            return kind.of(params)
+        if len(_TYPED) >= _TYPED_MAX:
+            _TYPED.clear()
+        typed = _TYPED[key] = kind.of(params)
+        return typed
+
+    def carry_groups(self, times: Iterable[int], params: Params) -> list[list[int]]:
         """The output steps ``times`` (sorted, deduplicated) split into groups to run in
         order, each with one ``memo`` emptied before it: the first output of a group is the
         isolated one, the others may continue from the output before them. The groups
@@ -321,14 +428,15 @@ class Method:
         a: int,
         b: int,
         t: int,
-        params: Mapping[str, Any],
-        memo: MutableMapping[str, Any] | None = None,
+        params: Params | MethodSettings,
+        memo: Memo | None = None,
     ) -> Output:
         """Compute step ``t`` from frames ``[a, b)`` of anything with ``packed(a, b)``,
         ``frames(a, b)`` and ``layout`` (a SpikeRecording or the streaming buffer).
 
         ``memo`` reaches recurrent methods only (see ``recurrent``)."""
         kw = {"memo": memo} if self.recurrent else {}
+        params = self.settings_of(params)
         if self.compute_packed is not None:
             return self.compute_packed(
                 recording_like.packed(a, b), recording_like.layout, t - a, a, params, **kw
@@ -406,7 +514,7 @@ def methods() -> dict[str, dict[str, Any]]:
 
 def resolve_params(
     method: Method,
-    params: Mapping[str, Any] | None = None,
+    params: Params | None = None,
     preset: str | None = None,
     *,
     strict: bool = False,

@@ -28,16 +28,21 @@ and the motion excitation uses interval statistics rather than synaptic delays.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, Settings, register
+from cfsr.methods.registry import (
+    MAX_UNPACKED_STEPS,
+    Method,
+    MethodSettings,
+    Output,
+    Param,
+    register,
+)
 from cfsr.methods.tfa import adaptive_rate
 from cfsr.methods.tfi import tfi_rate
-from cfsr.methods.tfp import tfp_extent, tfp_rate
+from cfsr.methods.tfp import TfpMode, tfp_extent, tfp_rate
 
 __all__ = ["motion_confidence", "graph_cut_labels", "snm_rate"]
 
@@ -60,7 +65,7 @@ def motion_confidence(
 ) -> np.ndarray:
     """Motion confidence in [0, 1) per pixel (stage 1), float64 (H, W)."""
     short = tfi_rate(spikes, center, max_isi=max_isi).astype(np.float64)
-    long_ = tfp_rate(spikes, center, window=long_window, mode="centred").astype(np.float64)
+    long_ = tfp_rate(spikes, center, window=long_window, mode=TfpMode.CENTRED).astype(np.float64)
     floor = 1.0 / (2 * max_isi + 2)
     e = np.abs(np.log(np.maximum(short, floor)) - np.log(np.maximum(long_, floor)))
     e = _box3(e)
@@ -86,7 +91,7 @@ def graph_cut_labels(conf: np.ndarray, smoothness: float) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class SnmSettings(Settings):
+class SnmSettings(MethodSettings):
     """SNM's parameters (its Param table below)."""
 
     long_window: int  #: static integration window (centred), steps
@@ -97,16 +102,13 @@ class SnmSettings(Settings):
     refractory: float  #: refractory fraction of the median interval
 
 
-def snm_rate(
-    spikes: np.ndarray, center: int, p: Mapping[str, Any] | SnmSettings
-) -> tuple[np.ndarray, np.ndarray]:
+def snm_rate(spikes: np.ndarray, center: int, s: SnmSettings) -> tuple[np.ndarray, np.ndarray]:
     """SNM rate (spikes/step, float32) and motion labels (bool) at ``center``."""
-    s = SnmSettings.of(p)
     conf = motion_confidence(
         spikes, center, long_window=s.long_window, max_isi=s.max_isi, motion_sigma=s.motion_sigma
     )
     labels = graph_cut_labels(conf, s.smoothness)
-    static = tfp_rate(spikes, center, window=s.long_window, mode="centred")
+    static = tfp_rate(spikes, center, window=s.long_window, mode=TfpMode.CENTRED)
     if not labels.any():
         return np.clip(static, 0.0, 1.0).astype(np.float32), labels
     moving = adaptive_rate(
@@ -120,14 +122,13 @@ def snm_rate(
     return np.clip(rate, 0.0, 1.0), labels
 
 
-def _window(p: Mapping[str, Any]) -> tuple[int, int]:
-    s = SnmSettings.of(p)
-    before, after = tfp_extent(s.long_window, "centred")
+def _window(s: SnmSettings) -> tuple[int, int]:
+    before, after = tfp_extent(s.long_window, TfpMode.CENTRED)
     return max(before, s.max_isi), max(after, s.max_isi)
 
 
-def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    rate, labels = snm_rate(window, center, p)
+def _compute(window: np.ndarray, center: int, start: int, s: SnmSettings) -> Output:
+    rate, labels = snm_rate(window, center, s)
     return Output(rate, {"motion": labels})
 
 

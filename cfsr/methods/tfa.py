@@ -18,16 +18,21 @@ The same kernel, with a refractory merge of too-short intervals, is SNM's motion
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from cfsr._isi import search_range
 from cfsr._jit import njit
 from cfsr.methods._spiketimes import pixel_times, row_gather
-from cfsr.methods.registry import MAX_UNPACKED_STEPS, Method, Output, Param, Settings, register
+from cfsr.methods.registry import (
+    MAX_UNPACKED_STEPS,
+    Method,
+    MethodSettings,
+    Output,
+    Param,
+    register,
+)
 
 __all__ = ["adaptive_rate", "adaptive_rates"]
 
@@ -197,20 +202,18 @@ def adaptive_rate(
 
 
 @dataclass(frozen=True)
-class TfaSettings(Settings):
+class TfaSettings(MethodSettings):
     """TFA's parameters (its Param table below)."""
 
     threshold: int  #: intervals integrated per pixel
     max_window: int  #: search range each side of t, steps
 
 
-def _window(p: Mapping[str, Any]) -> tuple[int, int]:
-    s = TfaSettings.of(p)
+def _window(s: TfaSettings) -> tuple[int, int]:
     return s.max_window, s.max_window
 
 
-def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    s = TfaSettings.of(p)
+def _compute(window: np.ndarray, center: int, start: int, s: TfaSettings) -> Output:
     return Output(adaptive_rate(window, center, threshold=s.threshold, max_window=s.max_window))
 
 

@@ -7,9 +7,7 @@ For pixel x and output step t, the spikes s_prev <= t < s_next bracket t and the
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -17,7 +15,7 @@ from cfsr._isi import isi_from_times, needs_after, needs_before, search_range, t
 from cfsr._jit import njit
 from cfsr._packed import isi_packed, stored_to_image
 from cfsr.methods._spiketimes import pixel_times, row_gather
-from cfsr.methods.registry import Method, Output, Param, Settings, register
+from cfsr.methods.registry import Method, MethodSettings, Output, Param, register
 
 __all__ = ["tfi_rate", "isi_at", "tfi_rates"]
 
@@ -134,19 +132,18 @@ def tfi_rates(spikes: np.ndarray, centers, *, max_isi: int = 400) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class TfiSettings(Settings):
+class TfiSettings(MethodSettings):
     """TFI's parameters (its Param table below)."""
 
     max_isi: int  #: steps searched each side of t
 
 
-def _window(p: Mapping[str, Any]) -> tuple[int, int]:
-    s = TfiSettings.of(p)
+def _window(s: TfiSettings) -> tuple[int, int]:
     return s.max_isi, s.max_isi
 
 
-def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(tfi_rate(window, center, max_isi=TfiSettings.of(p).max_isi))
+def _compute(window: np.ndarray, center: int, start: int, s: TfiSettings) -> Output:
+    return Output(tfi_rate(window, center, max_isi=s.max_isi))
 
 
 def tfi_rate_packed(packed: np.ndarray, layout, center: int, *, max_isi: int = 400) -> np.ndarray:
@@ -159,8 +156,8 @@ def tfi_rate_packed(packed: np.ndarray, layout, center: int, *, max_isi: int = 4
     return (1.0 / isi).astype(np.float32)
 
 
-def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    return Output(tfi_rate_packed(packed, layout, center, max_isi=TfiSettings.of(p).max_isi))
+def _compute_packed(packed, layout, center: int, start: int, s: TfiSettings) -> Output:
+    return Output(tfi_rate_packed(packed, layout, center, max_isi=s.max_isi))
 
 
 register(

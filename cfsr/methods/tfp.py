@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from enum import StrEnum
 
 import numpy as np
 
@@ -12,7 +11,15 @@ from cfsr._isi import search_range
 from cfsr._jit import njit
 from cfsr._packed import CHUNK, count_packed, stored_to_image
 from cfsr._words import _load_u64, trailing_zeros
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
+from cfsr.methods.registry import (
+    MAX_WINDOW_STEPS,
+    Method,
+    MethodSettings,
+    Output,
+    Param,
+    choices_of,
+    register,
+)
 
 __all__ = [
     "tfp_extent",
@@ -25,10 +32,27 @@ __all__ = [
     "static_rate",
     "static_rate_packed",
     "STATIC_ESTIMATORS",
+    "RateRule",
+    "TfpMode",
 ]
 
+
+class TfpMode(StrEnum):
+    """Where a TFP window lies around t."""
+
+    TRAILING = "trailing"  #: the ``window`` steps ending at t (Eq. 4, causal, for live use)
+    CENTRED = "centred"  #: ``window`` steps with t in the middle (offline)
+
+
+class RateRule(StrEnum):
+    """How a static span's spikes give a rate."""
+
+    ISI = "isi"  #: ``(count - 1) / (last - first)`` (:func:`span_rate`)
+    TFP = "tfp"  #: count / steps (Eq. 4, the paper's)
+
+
 #: Static-region estimators: ``isi`` (:func:`isi_span_rate`) or ``tfp`` (Eq. 4, the paper's).
-STATIC_ESTIMATORS = ("isi", "tfp")
+STATIC_ESTIMATORS = choices_of(RateRule)
 
 
 @njit
@@ -221,7 +245,7 @@ def static_rate(
     center: int,
     *,
     window: int,
-    mode: str = "trailing",
+    mode: TfpMode = TfpMode.TRAILING,
     estimator: str,
     max_isi: int = 200,
     tfi: np.ndarray | None = None,
@@ -239,11 +263,11 @@ def static_rate(
     ``layout`` (a :class:`cfsr.layout.Layout`): ``spikes`` are packed frames ``(n,
     frame_bytes)`` of that layout, read without unpacking (:func:`static_rate_packed`).
     """
-    if estimator == "tfp":
+    if estimator == RateRule.TFP:
         if layout is not None:
             return tfp_rate_packed(spikes, layout, center, window=window, mode=mode)
         return tfp_rate(spikes, center, window=window, mode=mode)
-    if estimator != "isi":
+    if estimator != RateRule.ISI:
         raise ValueError(f"estimator must be one of {STATIC_ESTIMATORS}, got {estimator!r}")
     if window < 1:
         raise ValueError(f"window must be >= 1 step, got {window}")
@@ -299,7 +323,7 @@ def fill_sparse_stored(
     return flat
 
 
-def tfp_span(center: int, n: int, window: int, mode: str) -> tuple[int, int]:
+def tfp_span(center: int, n: int, window: int, mode: TfpMode) -> tuple[int, int]:
     """Steps ``[a, b)`` of a ``window``-step TFP at index ``center`` of an ``n``-step array.
 
     ``trailing``: the ``window`` steps ending at ``center`` (Eq. 4, causal, for live use);
@@ -309,16 +333,16 @@ def tfp_span(center: int, n: int, window: int, mode: str) -> tuple[int, int]:
     return max(0, center + lo), min(n, center + hi)
 
 
-def _offsets(window: int, mode: str) -> tuple[int, int]:
+def _offsets(window: int, mode: TfpMode) -> tuple[int, int]:
     """``[lo, hi)`` of a TFP window relative to its centre."""
-    if mode == "trailing":
+    if mode == TfpMode.TRAILING:
         return 1 - window, 1
-    if mode == "centred":
+    if mode == TfpMode.CENTRED:
         return -(window // 2), window - window // 2
     raise ValueError(f"mode must be 'trailing' or 'centred', got {mode!r}")
 
 
-def tfp_extent(window: int, mode: str) -> tuple[int, int]:
+def tfp_extent(window: int, mode: TfpMode) -> tuple[int, int]:
     """Steps ``(before, after)`` the centre that a ``window``-step TFP placed as ``mode``
     reads (:func:`tfp_span` before clipping): ``trailing`` ``(window - 1, 0)``, ``centred``
     the window with the centre in its middle."""
@@ -327,7 +351,7 @@ def tfp_extent(window: int, mode: str) -> tuple[int, int]:
 
 
 def tfp_rate(
-    spikes: np.ndarray, center: int, *, window: int = 160, mode: str = "trailing"
+    spikes: np.ndarray, center: int, *, window: int = 160, mode: TfpMode = TfpMode.TRAILING
 ) -> np.ndarray:
     """TFP firing rate at step ``center`` (paper Eq. 4): spike count / steps counted.
 
@@ -342,25 +366,23 @@ def tfp_rate(
 
 
 @dataclass(frozen=True)
-class TfpSettings(Settings):
+class TfpSettings(MethodSettings):
     """TFP's parameters (its Param table below)."""
 
     window: int  #: window length w, steps
-    mode: str  #: trailing or centred
+    mode: TfpMode
 
 
-def _window(p: Mapping[str, Any]) -> tuple[int, int]:
-    s = TfpSettings.of(p)
+def _window(s: TfpSettings) -> tuple[int, int]:
     return tfp_extent(s.window, s.mode)
 
 
-def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    s = TfpSettings.of(p)
+def _compute(window: np.ndarray, center: int, start: int, s: TfpSettings) -> Output:
     return Output(tfp_rate(window, center, window=s.window, mode=s.mode))
 
 
 def tfp_rate_packed(
-    packed: np.ndarray, layout, center: int, *, window: int = 160, mode: str = "trailing"
+    packed: np.ndarray, layout, center: int, *, window: int = 160, mode: TfpMode = TfpMode.TRAILING
 ) -> np.ndarray:
     """:func:`tfp_rate` computed from packed frames ``(n, frame_bytes)`` without unpacking."""
     if window < 1:
@@ -370,8 +392,7 @@ def tfp_rate_packed(
     return (counts / np.float32(max(1, b - a))).astype(np.float32)
 
 
-def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    s = TfpSettings.of(p)
+def _compute_packed(packed, layout, center: int, start: int, s: TfpSettings) -> Output:
     return Output(tfp_rate_packed(packed, layout, center, window=s.window, mode=s.mode))
 
 
@@ -385,7 +406,7 @@ register(
                 "trailing",
                 "",
                 "trailing (causal) or centred window",
-                choices=("trailing", "centred"),
+                choices=choices_of(TfpMode),
             ),
         },
         window=_window,

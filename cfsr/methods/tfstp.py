@@ -37,7 +37,7 @@ Differences from SpikeCV, on purpose:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, MutableMapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -48,10 +48,11 @@ from cfsr._jit import njit
 from cfsr.methods.registry import (
     MAX_UNPACKED_STEPS,
     MAX_WINDOW_STEPS,
+    Memo,
     Method,
+    MethodSettings,
     Output,
     Param,
-    Settings,
     register,
 )
 
@@ -167,7 +168,7 @@ def _rate(
     t: int,
     start: int,
     c: _Stp,
-    memo: MutableMapping[str, Any] | None,
+    memo: Memo | None,
 ) -> np.ndarray:
     """TFSTP at absolute step ``t`` from a state begun at absolute step ``start``.
 
@@ -213,7 +214,7 @@ def stp_rate(
     F: float = 10.0,
     f: float = 0.15,
     start: int = 0,
-    memo: MutableMapping[str, Any] | None = None,
+    memo: Memo | None = None,
 ) -> np.ndarray:
     """TFSTP rate at ``center`` (spikes/step, float32 (H, W) in [0, 1]).
 
@@ -248,7 +249,7 @@ def _at(
     start: int,
     warmup: int,
     c: _Stp,
-    memo: MutableMapping[str, Any] | None,
+    memo: Memo | None,
 ) -> np.ndarray:
     """TFSTP at index ``center`` of an ``(n, H, W)`` window whose first step is ``start``."""
     n, h, w = shape
@@ -259,7 +260,7 @@ def _at(
 
 
 @dataclass(frozen=True)
-class TfstpSettings(Settings):
+class TfstpSettings(MethodSettings):
     """TFSTP's parameters (its Param table below)."""
 
     warmup: int  #: least steps before t that build the synapse state
@@ -273,10 +274,9 @@ def _compute(
     window: np.ndarray,
     center: int,
     start: int,
-    p: Mapping[str, Any],
-    memo: MutableMapping[str, Any] | None = None,
+    s: TfstpSettings,
+    memo: Memo | None = None,
 ) -> Output:
-    s = TfstpSettings.of(p)
     return Output(
         stp_rate(
             window, center, start=start, memo=memo, warmup=s.warmup, u0=s.u0, D=s.D, F=s.F, f=s.f
@@ -289,12 +289,11 @@ def _compute_packed(
     layout: Any,
     center: int,
     start: int,
-    p: Mapping[str, Any],
-    memo: MutableMapping[str, Any] | None = None,
+    s: TfstpSettings,
+    memo: Memo | None = None,
 ) -> Output:
     """As :func:`_compute`, unpacking only the frames the state has not folded in yet."""
     packed = np.asarray(packed)
-    s = TfstpSettings.of(p)
     c = _constants(s.u0, s.D, s.F, s.f)
 
     def frames(a: int, b: int) -> np.ndarray:
@@ -304,9 +303,9 @@ def _compute_packed(
     return Output(_at(frames, shape, center, start, s.warmup, c, memo))
 
 
-def _window(p: Mapping[str, Any]) -> tuple[int, int]:
+def _window(s: TfstpSettings) -> tuple[int, int]:
     # the state starts up to one grid step before t - warmup
-    warmup = TfstpSettings.of(p).warmup
+    warmup = s.warmup
     return warmup + state_grid(warmup) - 1, 0
 
 

@@ -12,17 +12,18 @@ how groups are shared between processes; a carried output moves by under 0.1 dB
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, MutableMapping
+from collections.abc import Iterable, Mapping
 from typing import Any, NamedTuple
 
 import numpy as np
 
 from cfsr.methods.cfsr.settings import CfsrSettings
+from cfsr.methods.registry import Memo
 
 __all__ = ["Carry", "carry_groups", "carry_in", "carry_out", "continues"]
 
 
-def carry_groups(times: Iterable[int], p: Mapping[str, Any] | CfsrSettings) -> list[list[int]]:
+def carry_groups(times: Iterable[int], s: CfsrSettings) -> list[list[int]]:
     """Split output steps into the groups within which outputs carry work forward.
 
     The steps are sorted and deduplicated; a group ends where the next step lies in another
@@ -33,7 +34,6 @@ def carry_groups(times: Iterable[int], p: Mapping[str, Any] | CfsrSettings) -> l
     them, so a group run in order with one memo gives the same frames in any process, and
     the frames do not depend on how the groups are shared between processes.
     """
-    s = CfsrSettings.of(p)
     ts = sorted({int(t) for t in times})
     groups: list[list[int]] = []
     for t in ts:
@@ -46,8 +46,8 @@ def carry_groups(times: Iterable[int], p: Mapping[str, Any] | CfsrSettings) -> l
 
 def continues(prev: int, t: int, s: CfsrSettings) -> bool:
     """Whether output step ``t`` continues from ``prev`` (:func:`carry_groups`' rule)."""
-    span = int(s.carry_span)
-    return span > 0 and prev // span == t // span and 0 < t - prev <= int(s.carry_gap)
+    span = s.carry_span
+    return span > 0 and prev // span == t // span and 0 < t - prev <= s.carry_gap
 
 
 class Carry(NamedTuple):
@@ -62,13 +62,13 @@ class Carry(NamedTuple):
 
 
 def carry_in(
-    memo: MutableMapping[str, Any] | None, t: int, center: int, s: CfsrSettings
+    memo: Memo | None, t: int, center: int, s: CfsrSettings
 ) -> tuple[dict[int, np.ndarray] | None, dict[str, Any] | None]:
     """The previous output's history frames (window indices -> frame; None: none) when output
     step ``t`` continues from it (:func:`continues`), and the group's PatchMatch frames (an
     empty bank for the first output of a group; None without a memo or with
     ``carry_span = 0``)."""
-    if memo is None or int(s.carry_span) <= 0:
+    if memo is None or s.carry_span <= 0:
         return None, None
     old = memo.get("cfsr")
     if not isinstance(old, Carry) or not continues(old.t, t, s) or old.key != s.carry_key:
@@ -78,7 +78,7 @@ def carry_in(
 
 
 def carry_out(
-    memo: MutableMapping[str, Any] | None,
+    memo: Memo | None,
     t: int,
     center: int,
     s: CfsrSettings,
@@ -88,7 +88,7 @@ def carry_out(
     """Leave this output's history frames (window index -> frame; None: none) and the
     group's PatchMatch frames (``bank``, which :func:`patchmatch_refine` fills in place) in
     ``memo``."""
-    if memo is None or int(s.carry_span) <= 0:
+    if memo is None or s.carry_span <= 0:
         return
     shift = t - center
     kept = {} if frames is None else {e + shift: f for e, f in frames.items()}

@@ -17,8 +17,9 @@ A window with no dynamic pixel needs only TFP: the TFI stage is skipped and the 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -28,14 +29,26 @@ from cfsr.methods.cfsr.atsr import atsr_fuse
 from cfsr.methods.cfsr.distinction import coarse_masks, distinct_isi_counts_packed
 from cfsr.methods.cfsr.steady_distinction import (
     DISTINCTIONS,
+    Distinction,
     check_static,
     noise_level,
     steadiness,
     steady_mask,
 )
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Method, Output, Param, Settings, register
+from cfsr.methods.registry import (
+    MAX_WINDOW_STEPS,
+    Method,
+    MethodSettings,
+    Output,
+    Param,
+    Params,
+    choices_of,
+    register,
+)
 from cfsr.methods.tfi import tfi_rate_packed, tfi_rates
 from cfsr.methods.tfp import (
+    RateRule,
+    TfpMode,
     static_rate,
     static_rate_packed,
     tfp_extent,
@@ -44,8 +57,24 @@ from cfsr.methods.tfp import (
     tfp_span,
 )
 
+
+class StaticEstimator(StrEnum):
+    """The static region's rate at t (:func:`static_checked`)."""
+
+    STEADY = "steady"  #: ``isi`` where the interval at t agrees with it, the TFI elsewhere
+    ISI = "isi"  #: ``(spikes - 1) / (last - first)`` over the span, the TFI below two spikes
+    TFP = "tfp"  #: window count / w (Eq. 4, the paper's)
+
+
+class DynamicEstimator(StrEnum):
+    """``csr``'s dynamic-region rate."""
+
+    STEADY = "steady"  #: the checked span rule over ``dynamic_span`` centred steps
+    TFI = "tfi"  #: the interval at t (Eq. 7, the paper's)
+
+
 #: Static-region estimators of CSR and CFSR at t (:func:`static_checked`).
-STATIC_CHOICES = ("steady", "isi", "tfp")
+STATIC_CHOICES = choices_of(StaticEstimator)
 
 __all__ = ["csr_frames", "csr_frame_packed", "CSR_PARAMS", "csr_window", "static_length"]
 
@@ -68,7 +97,7 @@ CSR_PARAMS: dict[str, Param] = {
     ),
     "tfp_window": Param.steps(160, "TFP window w for the static region (Eq. 4)"),
     "tfp_mode": Param(
-        "trailing", "", "TFP window: trailing (Eq. 4) or centred", choices=("trailing", "centred")
+        "trailing", "", "TFP window: trailing (Eq. 4) or centred", choices=choices_of(TfpMode)
     ),
     "max_isi": Param.steps(200, "TFI search range each side of t (Eq. 3)"),
     # steady by default: the isi rule where t's own interval agrees with it, the TFI where it
@@ -174,7 +203,7 @@ CSR_ONLY_PARAMS: dict[str, Param] = {
         "",
         "dynamic-region rate: tfi (Eq. 7, the interval at t) or steady (the steady static "
         "rule over dynamic_span centred steps)",
-        choices=("steady", "tfi"),
+        choices=choices_of(DynamicEstimator),
     ),
     "dynamic_span": Param.steps(
         16,
@@ -187,18 +216,18 @@ CSR_ONLY_PARAMS: dict[str, Param] = {
 
 
 @dataclass(frozen=True)
-class CoarseSettings(Settings):
+class CoarseSettings(MethodSettings):
     """The coarse stage's parameters (:data:`CSR_PARAMS`: meaning, unit and range), shared by
     ``csr`` (:class:`CsrSettings`) and ``cfsr``."""
 
     T: int  #: distinction window before t (Eq. 5), steps
     theta: int  #: distinct ISI values that make a pixel dynamic (Eq. 6)
     tfp_window: int  #: TFP window w (Eq. 4), steps
-    tfp_mode: str  #: trailing or centred
+    tfp_mode: TfpMode
     max_isi: int  #: TFI search range each side of t (Eq. 3), steps
-    static_estimator: str  #: one of STATIC_CHOICES
+    static_estimator: StaticEstimator
     steady_match: float
-    distinction: str  #: one of DISTINCTIONS
+    distinction: Distinction
     steady_radius: int  #: steps
     steady_tol: float
     steady_noise: float
@@ -211,16 +240,16 @@ class CsrSettings(CoarseSettings):
     """``csr``'s parameters (:data:`CSR_ONLY_PARAMS`): the coarse ones and the dynamic
     region's estimate."""
 
-    dynamic_estimator: str  #: tfi or steady
+    dynamic_estimator: DynamicEstimator
     dynamic_span: int  #: steps
 
     @classmethod
-    def of(cls, p: Mapping[str, Any] | Settings) -> CsrSettings:
-        """As :meth:`Settings.of`; a parameter set without a dynamic estimator of its own
+    def of(cls, p: Params | MethodSettings) -> CsrSettings:
+        """As :meth:`MethodSettings.of`; a parameter set without a dynamic estimator of its own
         (CFSR's, whose fine stage reconstructs the dynamic region) takes the paper's TFI."""
         if isinstance(p, cls):
             return p
-        if isinstance(p, Settings) or "dynamic_estimator" not in p:
+        if isinstance(p, MethodSettings) or "dynamic_estimator" not in p:
             return tfi_dynamic(CoarseSettings.of(p))
         return super().of(p)
 
@@ -228,7 +257,9 @@ class CsrSettings(CoarseSettings):
 def tfi_dynamic(c: CoarseSettings) -> CsrSettings:
     """``c``'s coarse parameters with the TFI (Eq. 7) as the dynamic region's estimate."""
     return CsrSettings(
-        **c.pick(*CoarseSettings.names()), dynamic_estimator="tfi", dynamic_span=_TFI_SPAN
+        **c.pick(*CoarseSettings.names()),
+        dynamic_estimator=DynamicEstimator.TFI,
+        dynamic_span=_TFI_SPAN,
     )
 
 
@@ -236,44 +267,42 @@ def tfi_dynamic(c: CoarseSettings) -> CsrSettings:
 _TFI_SPAN = CSR_ONLY_PARAMS["dynamic_span"].default
 
 
-def static_length(p: Mapping[str, Any] | CoarseSettings) -> int:
+def static_length(s: CoarseSettings) -> int:
     """Steps of the static estimate's span: ``static_span`` for ``isi`` when set, else
     ``tfp_window``."""
-    s = CoarseSettings.of(p)
-    if s.static_estimator in ("isi", "steady") and int(s.static_span) > 0:
-        return int(s.static_span)
-    return int(s.tfp_window)
+    if s.static_estimator is not StaticEstimator.TFP and s.static_span > 0:
+        return s.static_span
+    return s.tfp_window
 
 
-def csr_window(p: Mapping[str, Any] | CsrSettings) -> tuple[int, int]:
+def csr_window(s: CsrSettings) -> tuple[int, int]:
     """Steps before/after t that one CSR frame needs."""
-    s = CsrSettings.of(p)
     tb, ta = tfp_extent(static_length(s), s.tfp_mode)
     reach = s.max_isi  # TFI at t; the steady rules read inside the same range
-    if s.dynamic_estimator == "steady":
+    if s.dynamic_estimator is DynamicEstimator.STEADY:
         reach = max(reach, s.dynamic_span // 2 + 1)
     return max(s.T - 1, tb, reach), max(ta, reach)
 
 
-def uses_steady(p: Mapping[str, Any] | CsrSettings) -> bool:
+def uses_steady(s: CsrSettings) -> bool:
     """Whether a parameter set reads the intervals around t
     (:mod:`cfsr.methods.cfsr.steady_distinction`)."""
-    s = CsrSettings.of(p)
     return (
-        s.distinction == "steady"
-        or s.static_estimator == "steady"
-        or s.dynamic_estimator == "steady"
+        s.distinction is Distinction.STEADY
+        or s.static_estimator is StaticEstimator.STEADY
+        or s.dynamic_estimator is DynamicEstimator.STEADY
     )
 
 
-def span_estimator(p: Mapping[str, Any] | CoarseSettings) -> str:
+def span_estimator(s: CoarseSettings) -> RateRule:
     """The span rule under ``static_estimator`` (``steady`` is ``isi`` plus a check)."""
-    est = CoarseSettings.of(p).static_estimator
-    return "isi" if est == "steady" else est
+    if s.static_estimator is StaticEstimator.STEADY:
+        return RateRule.ISI
+    return RateRule(s.static_estimator.value)
 
 
 def csr_frames(
-    spikes: np.ndarray, centers: Sequence[int], p: Mapping[str, Any] | CsrSettings
+    spikes: np.ndarray, centers: Sequence[int], s: CsrSettings
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CSR frames at several indices of one window.
 
@@ -283,8 +312,8 @@ def csr_frames(
         Upright spike frames.
     centers : sequence of int
         Indices into ``spikes`` of the output steps.
-    p : mapping or CsrSettings
-        The coarse parameters (:data:`CSR_PARAMS`; without ``dynamic_estimator``: the TFI).
+    s : CsrSettings
+        The coarse parameters (:data:`CSR_PARAMS`; CFSR's: :func:`tfi_dynamic`).
 
     Returns
     -------
@@ -296,7 +325,6 @@ def csr_frames(
         The static estimates (TFP, Eq. 4, or ``isi``) the static region used, before the
         ATSR scale.
     """
-    s = CsrSettings.of(p)
     cs = [int(c) for c in centers]
     if uses_steady(s):
         return _steady_frames(spikes, cs, s)
@@ -359,7 +387,7 @@ class Steady:
 def steady_parts(
     src: PackedWindow,
     center: int,
-    p: Mapping[str, Any] | CsrSettings,
+    s: CsrSettings,
     *,
     words=None,
     static: bool = True,
@@ -370,15 +398,14 @@ def steady_parts(
     interval at t, the noise level and the span rules the parameters ask for
     (``static=False``: the caller has the static span rule already;
     ``active``: the pixels outside static tiles, the others' spread taken as 0)."""
-    s = CsrSettings.of(p)
     n = src.n
     spans = []
-    want_static = static and span_estimator(s) == "isi"
-    want_dyn = s.dynamic_estimator == "steady"
+    want_static = static and span_estimator(s) is RateRule.ISI
+    want_dyn = s.dynamic_estimator is DynamicEstimator.STEADY
     if want_static:
         spans.append(tfp_span(center, n, static_length(s), s.tfp_mode))
     if want_dyn:
-        spans.append(tfp_span(center, n, int(s.dynamic_span), "centred"))
+        spans.append(tfp_span(center, n, s.dynamic_span, TfpMode.CENTRED))
     spread, isi, rates = steadiness(
         src,
         center,
@@ -390,7 +417,7 @@ def steady_parts(
     )
     noise = noise_level(spread)
     mask = None
-    if s.distinction == "steady":
+    if s.distinction is Distinction.STEADY:
         mask = steady_mask(
             spread,
             tol=s.steady_tol,
@@ -408,29 +435,27 @@ def steady_parts(
 
 
 def static_checked(
-    tfp: np.ndarray, isi: np.ndarray, noise: float, p: Mapping[str, Any] | CoarseSettings
+    tfp: np.ndarray, isi: np.ndarray, noise: float, s: CoarseSettings
 ) -> np.ndarray:
     """The static estimate under ``static_estimator``: ``steady`` keeps it only where the interval
     at t agrees (:func:`cfsr.methods.cfsr.steady_distinction.check_static`, tolerance raised to the
     noise level); ``isi`` and ``tfp`` as they are."""
-    s = CoarseSettings.of(p)
-    if s.static_estimator != "steady":
+    if s.static_estimator is not StaticEstimator.STEADY:
         return tfp
     return check_static(tfp, isi, match=steady_match(s, noise))
 
 
-def steady_match(p: Mapping[str, Any] | CoarseSettings, noise: float) -> float:
+def steady_match(s: CoarseSettings, noise: float) -> float:
     """The check's relative tolerance: ``steady_match``, raised to ``steady_noise`` times the
     frame's noise level (as the coarse mask's tolerance: a noisy steady pixel's interval at t
     strays from its mean by the same relative amount as its intervals spread)."""
-    s = CoarseSettings.of(p)
-    return max(float(s.steady_match), float(s.steady_noise) * noise)
+    return max(s.steady_match, s.steady_noise * noise)
 
 
 def csr_steady(
     src: PackedWindow,
     center: int,
-    p: Mapping[str, Any] | CsrSettings,
+    s: CsrSettings,
     *,
     coarse: Callable[[], np.ndarray],
     tfp: Callable[[], np.ndarray],
@@ -440,7 +465,6 @@ def csr_steady(
     over ``dynamic_span`` centred steps. ``coarse()`` gives the Eq. 5-6 mask (used under
     ``distinction = isi_set``), ``tfp()`` the window count (``static_estimator = tfp``).
     Returns the rate, the coarse mask and the static estimate."""
-    s = CsrSettings.of(p)
     st = steady_parts(src, center, s)
     mask = coarse() if st.mask is None else st.mask
     tfi = (1.0 / st.isi).astype(np.float32)
@@ -453,30 +477,29 @@ def csr_steady(
     return atsr_fuse(dyn, static, mask, tfi=tfi)[0], mask, static
 
 
-def _compute(window: np.ndarray, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    rates, masks, _ = csr_frames(window, [center], p)
+def _compute(window: np.ndarray, center: int, start: int, s: CsrSettings) -> Output:
+    rates, masks, _ = csr_frames(window, [center], s)
     return Output(rates[0], {"coarse": masks[0]})
 
 
 def csr_frame_packed(
-    packed: np.ndarray, layout: Any, center: int, p: Mapping[str, Any] | CsrSettings
+    packed: np.ndarray, layout: Any, center: int, s: CsrSettings
 ) -> tuple[np.ndarray, np.ndarray]:
     """One CSR frame and its coarse mask from packed frames: the same numbers as
     :func:`csr_frames`, without unpacking the window (the live path's budget)."""
-    s = CsrSettings.of(p)
     if uses_steady(s):
         rate, mask, _ = csr_steady(
             PackedWindow.from_packed(packed, layout),
             center,
             s,
             coarse=lambda: distinct_isi_counts_packed(packed, layout, center, s.T)
-            >= int(s.theta),
+            >= s.theta,
             tfp=lambda: tfp_rate_packed(
                 packed, layout, center, window=static_length(s), mode=s.tfp_mode
             ),
         )
         return rate, mask
-    mask = distinct_isi_counts_packed(packed, layout, center, s.T) >= int(s.theta)
+    mask = distinct_isi_counts_packed(packed, layout, center, s.T) >= s.theta
     tfi = tfi_rate_packed(packed, layout, center, max_isi=s.max_isi) if mask.any() else None
     tfp = static_rate_packed(
         packed,
@@ -493,8 +516,8 @@ def csr_frame_packed(
     return atsr_fuse(tfi, tfp, mask)[0], mask
 
 
-def _compute_packed(packed, layout, center: int, start: int, p: Mapping[str, Any]) -> Output:
-    rate, mask = csr_frame_packed(packed, layout, center, p)
+def _compute_packed(packed, layout, center: int, start: int, s: CsrSettings) -> Output:
+    rate, mask = csr_frame_packed(packed, layout, center, s)
     return Output(rate, {"coarse": mask})
 
 

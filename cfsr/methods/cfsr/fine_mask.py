@@ -139,7 +139,7 @@ def moving_objects(
     phi0 = max(s.phi0, 2.0 * quantum)
     hist = s.mog_history or s.mog_frames
     objects = history_objects(u8, phi0, s.adaptive, s, hist, sharp, gain)
-    match = phi0 * float(s.mog_match)
+    match = phi0 * s.mog_match
     ghosts = None
     if sharp is not None and match > 0:  # a ghost matches the background after t
         # only objects outside the coarse mask can change the fine mask (the union is what
@@ -182,15 +182,15 @@ def fine_region(
     fine = cues()
     region = fine  # what PatchMatch reconstructs
     left = None  # still pixels the reported fine mask leaves out: their run's rate
-    if int(s.still_reach) > 0 and fine.any():
+    if s.still_reach > 0 and fine.any():
         # the still pixels among the mask's: background at t, proven by their own spikes
         still, still_rate = still_pixels(
             src,
             center,
             fine,
-            reach=int(s.still_reach),
-            min_run=int(s.still_run),
-            jump=float(s.still_jump),
+            reach=s.still_reach,
+            min_run=s.still_run,
+            jump=s.still_jump,
             words=words,
         )
         if still.any():

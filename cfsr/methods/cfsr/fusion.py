@@ -32,8 +32,8 @@ def refine_stage(
     src: PackedWindow,
     center: int,
     seed: int,
-    co: Coarse,
-    mk: Masks,
+    coarse: Coarse,
+    masks: Masks,
     s: CfsrSettings,
     bank: dict[str, Any] | None,
 ) -> Refined:
@@ -42,16 +42,16 @@ def refine_stage(
     by ATSR (Eq. 7); the plain static estimate where the region is empty. The ATSR reads the
     refined rates on region & ~left only: the still pixels left out (and, always-full, the
     pixels outside the region) are matched but not averaged."""
-    if s.adaptive and not mk.region.any():
-        return Refined(np.clip(mk.tfp, 0.0, 1.0).astype(np.float32), None)
-    used = mk.region if mk.left is None else mk.region & ~mk.left
-    refined, (y0, x0), domain = patchmatch_refine(src, center, seed, mk.region, used, s, bank)
-    if not mk.region.any():  # always-full pipeline on a static window: the same TFP output
-        return Refined(np.clip(mk.tfp, 0.0, 1.0).astype(np.float32), None)
+    if s.adaptive and not masks.region.any():
+        return Refined(np.clip(masks.tfp, 0.0, 1.0).astype(np.float32), None)
+    used = masks.region if masks.left is None else masks.region & ~masks.left
+    refined, (y0, x0), domain = patchmatch_refine(src, center, seed, masks.region, used, s, bank)
+    if not masks.region.any():  # always-full pipeline on a static window: the same TFP output
+        return Refined(np.clip(masks.tfp, 0.0, 1.0).astype(np.float32), None)
     # TFI at t (computed here when the history did not need it)
-    tfi_full = co.tfi if co.tfi is not None else tfi_at(src, center, int(s.max_isi))
+    tfi_full = coarse.tfi if coarse.tfi is not None else tfi_at(src, center, s.max_isi)
     dyn = tfi_full.copy()
     crop = dyn[y0 : y0 + domain.shape[0], x0 : x0 + domain.shape[1]]
     crop[domain] = refined[domain]
-    rate, _ = atsr_fuse(dyn, mk.tfp, used, tfi=tfi_full)
+    rate, _ = atsr_fuse(dyn, masks.tfp, used, tfi=tfi_full)
     return Refined(rate, used)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Mapping
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,7 +35,7 @@ from cfsr.methods.cfsr.coarse import span_estimator, static_length, uses_steady
 from cfsr.methods.cfsr.daisi import log_table
 from cfsr.methods.cfsr.settings import CfsrSettings
 from cfsr.methods.cfsr.steady_distinction import steady_range
-from cfsr.methods.tfp import tfp_span
+from cfsr.methods.tfp import RateRule, TfpMode, tfp_span
 
 __all__ = ["History", "history_scan", "tfi_at"]
 
@@ -65,48 +65,60 @@ class History(NamedTuple):
 
 
 class _Reach(NamedTuple):
-    """What the history scan reads: the K history frames' ends and TFP spans, t's TFP span,
-    DAISI's range, the distinction windows' union and the words' steps (all window steps)."""
+    """What the history scan reads, in window steps; spans are ``[start, end)``."""
 
-    ends: np.ndarray  #: int64 (K,): the scanned frames' last steps
-    ta: np.ndarray  #: int64 (K,): TFP span starts
-    tb: np.ndarray  #: int64 (K,): TFP span ends
-    pa: int
-    pb: int
-    d_lo: int
-    d_hi: int
-    u_lo: int
-    u_hi: int
-    lo: int
-    hi: int
+    ends: np.ndarray  #: int64 (K,): the scanned history frames' last steps
+    tfp_starts: np.ndarray  #: int64 (K,): the history frames' TFP spans
+    tfp_ends: np.ndarray
+    static_start: int  #: the static estimate's span at t
+    static_end: int
+    daisi_start: int  #: DAISI's range around t
+    daisi_end: int
+    union_start: int  #: the union of the history frames' distinction windows (Eq. 5)
+    union_end: int
+    words_start: int  #: the spike words read, covering all of the above
+    words_end: int
 
 
 def _reach(src: PackedWindow, center: int, ends: np.ndarray, s: CfsrSettings) -> _Reach:
     """:class:`_Reach` of the scan of the history frames ending at ``ends``."""
     n = src.n
-    span, m, dspan = int(s.T), int(s.max_isi), int(s.daisi_span)
+    span, m, dspan = s.T, s.max_isi, s.daisi_span
     spans = [tfp_span(int(e), n, s.mog_window, s.tfp_mode) for e in ends]
-    ta = np.array([a for a, _ in spans], np.int64)
-    tb = np.array([b for _, b in spans], np.int64)
-    pa, pb = tfp_span(center, n, static_length(s), s.tfp_mode)
-    d_lo, d_hi = max(0, center - dspan - m), min(n, center + dspan + m + 1)
-    u_lo, u_hi = max(0, int(ends[0]) - span + 1), int(ends[-1]) + 1
+    tfp_starts = np.array([a for a, _ in spans], np.int64)
+    tfp_ends = np.array([b for _, b in spans], np.int64)
+    static_start, static_end = tfp_span(center, n, static_length(s), s.tfp_mode)
+    daisi_start, daisi_end = max(0, center - dspan - m), min(n, center + dspan + m + 1)
+    union_start, union_end = max(0, int(ends[0]) - span + 1), int(ends[-1]) + 1
     # the words cover both passes (the second reads TFI intervals up to max_isi around ends)
-    lo = max(0, min(u_lo, int(ta.min()), pa, d_lo, int(ends[0]) - m))
-    hi = min(n, max(u_hi, int(tb.max()), pb, d_hi, int(ends[-1]) + m + 1))
+    first, last = int(ends[0]), int(ends[-1])
+    lo = max(0, min(union_start, int(tfp_starts.min()), static_start, daisi_start, first - m))
+    hi = min(n, max(union_end, int(tfp_ends.max()), static_end, daisi_end, last + m + 1))
     if uses_steady(s.coarse) or s.two_sided:  # the steady rules read the same words
         s_lo, s_hi = steady_range(n, center, m)
         lo, hi = min(lo, s_lo), max(hi, s_hi)
         if s.two_sided:  # and the sharp rate at t
-            s_lo, s_hi = tfp_span(center, n, int(s.mog_span), "centred")
+            s_lo, s_hi = tfp_span(center, n, s.mog_span, TfpMode.CENTRED)
             lo, hi = max(0, min(lo, s_lo)), min(n, max(hi, s_hi))
-    return _Reach(ends, ta, tb, pa, pb, d_lo, d_hi, u_lo, u_hi, lo, hi)
+    return _Reach(
+        ends,
+        tfp_starts,
+        tfp_ends,
+        static_start,
+        static_end,
+        daisi_start,
+        daisi_end,
+        union_start,
+        union_end,
+        lo,
+        hi,
+    )
 
 
 def history_scan(
     src: PackedWindow,
     center: int,
-    p: Mapping[str, Any] | CfsrSettings,
+    s: CfsrSettings,
     active: np.ndarray | None = None,
     carried: Mapping[int, np.ndarray] | None = None,
 ) -> History:
@@ -128,7 +140,6 @@ def history_scan(
     their ends; only the others, and the frame at t, are scanned. ``ends`` gives the
     history's ends as used.
     """
-    s = CfsrSettings.of(p)
     h, w = src.h, src.w
     ks = range(s.mog_frames - 1, -1, -1)
     ends = np.array(
@@ -136,27 +147,31 @@ def history_scan(
     )
     all_ends, reused = ends, dict[int, np.ndarray]()
     if carried:
-        all_ends, reused = _carried_ends(ends, carried, int(s.mog_stride))
+        all_ends, reused = _carried_ends(ends, carried, s.mog_stride)
         ends = np.array([e for e in all_ends if e not in reused], np.int64)
     r = _reach(src, center, ends, s)
-    theta, m = int(s.theta), int(s.max_isi)
+    theta, m = s.theta, s.max_isi
     k = ends.size
     # the K history TFP windows and the one at t, as indices into their sorted distinct edges
-    wins = np.concatenate([np.stack([r.ta, r.tb], 1), [[r.pa, r.pb]]]).astype(np.int64)
+    wins = np.concatenate(
+        [np.stack([r.tfp_starts, r.tfp_ends], 1), [[r.static_start, r.static_end]]]
+    ).astype(np.int64)
     bounds, inv = np.unique(wins, return_inverse=True)
     inv = inv.reshape(wins.shape)
     # which windows take the isi rule: the history frames' (MOG's input) and the one at t
-    isi_win = np.array([s.mog_estimator == "isi"] * k + [span_estimator(s) == "isi"], np.bool_)
+    isi_win = np.array(
+        [s.mog_estimator == RateRule.ISI] * k + [span_estimator(s) == RateRule.ISI], np.bool_
+    )
     # the kernels take an empty mask for "no tile gate": every pixel active
     act = np.empty((0, 0), np.bool_) if active is None else active
     ub = np.empty((h, w), np.int32)
     tfps = np.empty((k + 1, h, w), np.float32)
     daisi = np.empty((h, w), np.float32)
-    store = _scratch((h, w + ROW_PAD, n_words(r.lo, r.hi)))
+    store = _scratch((h, w + ROW_PAD, n_words(r.words_start, r.words_end)))
     bases = np.empty((h, 2), np.int64)
     static_kernel(
-        Words(src.packed, src.geo, r.lo, r.hi),
-        HistUnion(r.u_lo, r.u_hi, int(s.T), theta),
+        Words(src.packed, src.geo, r.words_start, r.words_end),
+        HistUnion(r.union_start, r.union_end, s.T, theta),
         Spans(
             bounds.astype(np.int64),
             np.ascontiguousarray(inv[:, 0]),
@@ -165,14 +180,20 @@ def history_scan(
             np.append(ends, center).astype(np.int64),
             m,
         ),
-        Daisi(int(center), int(s.daisi_span), r.d_lo, r.d_hi, log_table(r.d_hi - r.d_lo)),
+        Daisi(
+            int(center),
+            s.daisi_span,
+            r.daisi_start,
+            r.daisi_end,
+            log_table(r.daisi_end - r.daisi_start),
+        ),
         ub,
         tfps,
         daisi,
         Stored(store, bases),
         act,
     )
-    words = (store, bases, r.lo, r.hi)
+    words = (store, bases, r.words_start, r.words_end)
     if not (ub >= theta).any():  # every pixel proven static in every history frame
         rates, coarse = tfps[:k], np.zeros((h, w), bool)  # static rates, in [0, 1] already
         tfi = None
@@ -198,12 +219,12 @@ def _second_pass(
     ``csr_frames``), the coarse mask at t and the TFI at t (spikes per step)."""
     store, bases, lo, hi = words
     k, h, w = tfps.shape
-    theta = int(s.theta)
+    theta = s.theta
     counts = np.empty((k, h, w), np.int32)
     isi = np.empty((k, h, w), np.int32)
     dynamic_kernel(
         Words(src.packed, src.geo, lo, hi),
-        Windows(ends, int(s.T), theta, int(s.max_isi)),
+        Windows(ends, s.T, theta, s.max_isi),
         Stored(store, bases),
         ub,
         counts,

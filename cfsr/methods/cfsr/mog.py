@@ -24,7 +24,6 @@ OpenCV is imported lazily here, so ``import cfsr`` does not load it.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -139,7 +138,7 @@ def history_objects(
     u8: np.ndarray,
     phi0: float,
     adaptive: bool,
-    p: Mapping[str, Any] | CfsrSettings,
+    s: CfsrSettings,
     hist: int,
     sharp: SharpRate | None = None,
     gain: float = 1.0,
@@ -161,7 +160,7 @@ def history_objects(
     varies = None
     if adaptive or sharp is not None:
         varies = (u8.max(axis=0).astype(np.int16) - u8.min(axis=0)) >= phi0
-    settings = mog_settings(CfsrSettings.of(p), hist)
+    settings = mog_settings(s, hist)
     if not adaptive:
         _, background = mog_background(u8, **settings)
         f = u8[-1] if sharp is None else sharp.u8((0, h, 0, w), gain)

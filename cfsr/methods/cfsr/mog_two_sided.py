@@ -72,10 +72,10 @@ def future_objects(
     candidates alone, gathered into one row: its cost follows their number.
     """
     n = src.n
-    win, stride = int(s.mog_window), int(s.mog_future_stride)
+    win, stride = s.mog_window, s.mog_future_stride
     starts = [
         center + k * stride
-        for k in range(int(s.mog_future_frames) - 1, -1, -1)
+        for k in range(s.mog_future_frames - 1, -1, -1)
         if center + k * stride + win <= n
     ]
     if not starts:  # no frame after t in the window: no ghost can be told

@@ -7,7 +7,7 @@ of them, :class:`~cfsr.methods.registry.Param`) and its presets. The quality tie
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from enum import StrEnum
 
 from cfsr.methods.cfsr.coarse import (
     CSR_ONLY_PARAMS,
@@ -15,8 +15,23 @@ from cfsr.methods.cfsr.coarse import (
     CSR_PRESETS,
 )
 from cfsr.methods.cfsr.slow_motion import SLOW_PARAMS
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Param
+from cfsr.methods.registry import MAX_WINDOW_STEPS, Param, Params, choices_of
 from cfsr.methods.tfp import STATIC_ESTIMATORS
+
+
+class MogSides(StrEnum):
+    """Eq. 9's test (``mog_sides``)."""
+
+    PAST = "past"  #: the MOG frame at t against the history before t (the paper's)
+    BOTH = "both"  #: the sharp rate at t against the history before t and after it
+
+
+class Quality(StrEnum):
+    """CFSR's quality tier (``quality``; :mod:`cfsr.methods.cfsr.tiers`)."""
+
+    FULL = "full"  #: every default
+    FAST = "fast"  #: the cheaper point of the measured Pareto front
+
 
 #: Ranges: a window-like parameter (steps) reaches at most half the ring's limit
 #: (MAX_WINDOW_STEPS) on its side of t, the static gate's two spans a quarter each; frame
@@ -68,7 +83,7 @@ FINE_PARAMS: dict[str, Param] = {
         "Eq. 9's test: past (the paper: the MOG frame at t against the background of the "
         "history before t) or both (the rate over mog_span centred steps at t against the "
         "background of the history before t and of its mirror after t)",
-        choices=("past", "both"),
+        choices=choices_of(MogSides),
     ),
     # the steady span rule, as CSR's dynamic_span reads it (CfsrSettings.sharp)
     "mog_span": replace(
@@ -179,7 +194,7 @@ FINE_PARAMS: dict[str, Param] = {
         "8, 17 PatchMatch targets a side (15 two steps apart, 2 nine apart): about 0.7x the "
         "CPU of full, within 0.5 dB of it on the simulator scenes); "
         "parameters set to other values than their defaults keep them",
-        choices=("full", "fast"),
+        choices=choices_of(Quality),
     ),
     # outputs close together continue from the previous one (_Carry): its history frames are
     # reused instead of recomputed; the result moves by under 0.1 dB (docs/methods.md,
@@ -230,7 +245,7 @@ FINE_PARAMS: dict[str, Param] = {
     **SLOW_PARAMS,
 }
 
-FINE_PRESETS: dict[str, dict[str, Any]] = {
+FINE_PRESETS: dict[str, Params] = {
     "paper": {
         **CSR_PRESETS["paper"],
         "mog_estimator": "tfp",

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, NamedTuple
 
@@ -295,7 +294,7 @@ def pm_frames(
     src: PackedWindow,
     centers,
     box: tuple[int, int, int, int],
-    p: Mapping[str, Any] | CfsrSettings,
+    s: CfsrSettings,
     tiles: np.ndarray | None = None,
     guide_out: np.ndarray | None = None,
     bank: dict[str, Any] | None = None,
@@ -323,19 +322,18 @@ def pm_frames(
     only), only the others are computed, and the bank is left holding this call's frames
     (before the blur, which runs on every frame as without a bank).
     """
-    s = CfsrSettings.of(p)
     y0, y1, x0, x1 = box
     if tiles is None:
         tiles = np.ones((-(-src.h // TILE), -(-src.w // TILE)), bool)
     cs = np.asarray(centers, np.int64)
-    thr = int(s.pm_guide)
+    thr = s.pm_guide
     raw = np.empty((cs.size, y1 - y0, x1 - x0), np.float32)
     tfa = np.empty(raw.shape if thr > 0 else (1, 1, 1), np.float32)
     todo = np.arange(cs.size)
     if bank and "raw" in bank:
         taken, missing = _from_bank(
             bank, cs + shift, box, tiles, raw, tfa, thr > 0, (src.h, src.w),
-            (shift, shift + src.n, int(s.max_isi)),
+            (shift, shift + src.n, s.max_isi),
         )
         todo = np.flatnonzero(~taken)
         if taken.any() and missing.any():  # the taken frames' tiles the bank lacks
@@ -361,7 +359,7 @@ def pm_frames(
     import cv2
 
     out = np.empty_like(g) if guide_out is None else guide_out
-    sigma = float(s.pm_sigma)
+    sigma = s.pm_sigma
 
     def blur(ks: range) -> None:
         for k in ks:
@@ -488,9 +486,9 @@ def _computed(
     sub = _tile_rows(box, tiles)
     runs_at, runs = _runs(sub, TILE, x0, x1)
     order = np.argsort(cs, kind="stable")
-    m = int(s.max_isi)
+    m = s.max_isi
     lo, hi = max(0, int(cs.min()) - m), min(n, int(cs.max()) + m + 1)
-    thr = int(s.pm_guide)
+    thr = s.pm_guide
     # the crop rows with work
     rows = np.flatnonzero(np.diff(runs_at)[np.arange(y1 - y0) // TILE] > 0).astype(np.int64)
     _pm_kernel(

@@ -68,9 +68,9 @@ compiled whole-frame scans in :mod:`cfsr.methods.cfsr._history_kernels`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, MutableMapping
+from collections.abc import Mapping
 from dataclasses import replace
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -92,15 +92,14 @@ from cfsr.methods.cfsr.params import FINE_PARAMS, FINE_PRESETS
 from cfsr.methods.cfsr.settings import CfsrSettings
 from cfsr.methods.cfsr.slow_motion import slow_fuse, slow_reach
 from cfsr.methods.cfsr.static_gate import gated_rate, static_gate, tile_gates
-from cfsr.methods.registry import Method, Output, register
-from cfsr.methods.tfp import tfp_extent, tfp_span
+from cfsr.methods.registry import Memo, Method, Output, register
+from cfsr.methods.tfp import TfpMode, tfp_extent, tfp_span
 
 __all__ = ["Coarse", "Masks", "cfsr_window", "fine_stage", "future_reach", "sharp_span"]
 
 
-def cfsr_window(p: Mapping[str, Any] | CfsrSettings) -> tuple[int, int]:
+def cfsr_window(s: CfsrSettings) -> tuple[int, int]:
     """Steps before/after t that one CFSR frame needs (under its tier's settings)."""
-    s = CfsrSettings.of(p)
     cb, ca = csr_window(s.coarse)  # the static TFP at t
     # the MOG history's frames: TFP over mog_window steps
     hb, ha = csr_window(replace(s.coarse, tfp_window=s.mog_window, static_span=0))
@@ -112,8 +111,8 @@ def cfsr_window(p: Mapping[str, Any] | CfsrSettings) -> tuple[int, int]:
         before = max(before, sharp_span(s)[0])
         after = max(after, future_reach(s), sharp_span(s)[1])
     if s.still_reach > 0:  # the still-pixel proof's range
-        before = max(before, int(s.still_reach))
-        after = max(after, int(s.still_reach))
+        before = max(before, s.still_reach)
+        after = max(after, s.still_reach)
     before, after = max(before, slow_reach(s)), max(after, slow_reach(s))  # slow-motion windows
     if s.adaptive and s.static_tol >= 0:  # the static gate's two spans end with the TFP's
         tfp_after = tfp_extent(static_length(s), s.tfp_mode)[1]
@@ -124,16 +123,16 @@ def cfsr_window(p: Mapping[str, Any] | CfsrSettings) -> tuple[int, int]:
 def sharp_span(s: CfsrSettings) -> tuple[int, int]:
     """Steps before/after t that the sharp rate at t reads (``mog_span`` centred, the TFI's
     ``max_isi`` range for a pixel with fewer than two spikes in it)."""
-    before, after = tfp_extent(int(s.mog_span), "centred")
-    reach = int(s.max_isi)
+    before, after = tfp_extent(s.mog_span, TfpMode.CENTRED)
+    reach = s.max_isi
     return max(before, reach), max(after, reach)
 
 
 def future_reach(s: CfsrSettings) -> int:
     """Steps after t that the mirrored history reads: frames ``[t + k * s, t + k * s +
     mog_window)``, ``s = mog_future_stride``, ``k = 0 .. mog_future_frames - 1``."""
-    k, stride = int(s.mog_future_frames), int(s.mog_future_stride)
-    return (k - 1) * stride + int(s.mog_window) - 1
+    k, stride = s.mog_future_frames, s.mog_future_stride
+    return (k - 1) * stride + s.mog_window - 1
 
 
 class Coarse(NamedTuple):
@@ -161,8 +160,8 @@ def fine_stage(
     window: np.ndarray | PackedWindow,
     center: int,
     seed: int,
-    p: Mapping[str, Any] | CfsrSettings,
-    memo: MutableMapping[str, Any] | None = None,
+    s: CfsrSettings,
+    memo: Memo | None = None,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The whole CFSR pipeline on one window; returns ``(rate, {"coarse", "fine"})``.
 
@@ -185,7 +184,6 @@ def fine_stage(
     same numbers). Without it, or for the first output of a group, the frame is the isolated
     one.
     """
-    s = CfsrSettings.of(p)
     src = window if isinstance(window, PackedWindow) else PackedWindow.from_frames(window)
     carried, bank = carry_in(memo, int(seed), center, s)
     # 0. static gate: counts unchanged over the last two spans -> the TFP, nothing else to do
@@ -197,16 +195,16 @@ def fine_stage(
         return gated_rate(src, gate, pa, pb, center, s), {"coarse": none, "fine": none.copy()}
     active, slow_cand = tile_gates(src, pb, s)
     # 1. CSR history (oldest first; frames before the window start dropped), DAISI, TFI, TFP
-    co = _coarse_stage(src, center, s, active, carried)
-    frames = dict(zip(co.history.ends.tolist(), co.history.rates, strict=True))
+    coarse = _coarse_stage(src, center, s, active, carried)
+    frames = dict(zip(coarse.history.ends.tolist(), coarse.history.rates, strict=True))
     carry_out(memo, int(seed), center, s, frames, bank)
     # 2-4. MOG objects, DAISI edges, the fine mask and PatchMatch's region
-    mk = _mask_stage(src, center, co, s)
+    masks = _mask_stage(src, center, coarse, s)
     # 5-6. PatchMatch on the fine region, ATSR
-    ref = refine_stage(src, center, seed, co, mk, s, bank)
+    ref = refine_stage(src, center, seed, coarse, masks, s, bank)
     # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
-    rate = slow_fuse(src, center, ref.rate, ref.used, s, slow_cand, co.noise)
-    return rate, {"coarse": mk.coarse, "fine": mk.fine}
+    rate = slow_fuse(src, center, ref.rate, ref.used, s, slow_cand, coarse.noise)
+    return rate, {"coarse": masks.coarse, "fine": masks.fine}
 
 
 def _coarse_stage(
@@ -225,7 +223,7 @@ def _coarse_stage(
     # CFSR has no dynamic estimator of its own: two-sided, the span rule at t is the sharp rate
     q = s.sharp if s.two_sided else s.coarse
     st = steady_parts(src, center, q, words=hs.words, static=False, active=active)
-    sharp = SharpRate(st.dynamic, st.isi, hs.rates[-1], int(s.mog_span)) if s.two_sided else None
+    sharp = SharpRate(st.dynamic, st.isi, hs.rates[-1], s.mog_span) if s.two_sided else None
     return Coarse(
         hs,
         hs.coarse if st.mask is None else st.mask,
@@ -236,26 +234,29 @@ def _coarse_stage(
     )
 
 
-def _mask_stage(src: PackedWindow, center: int, co: Coarse, s: CfsrSettings) -> Masks:
+def _mask_stage(
+    src: PackedWindow, center: int, coarse: Coarse, s: CfsrSettings
+) -> Masks:
     """Steps 2-4: MOG objects (Eq. 8-9, ghosts told by the mirrored history), DAISI edges
     (Eq. 10-14), the fine mask, its still pixels (left out, with their run's rate) and
     PatchMatch's region."""
-    objects, ghosts = moving_objects(src, center, co.history.rates, co.coarse, co.sharp, s)
-    edges = co.history.daisi >= s.phi
+    hist = coarse.history
+    objects, ghosts = moving_objects(src, center, hist.rates, coarse.coarse, coarse.sharp, s)
+    edges = hist.daisi >= s.phi
     fine, region, left, tfp = fine_region(
-        src, center, co.coarse, objects, edges, ghosts, co.tfp, co.history.words, s
+        src, center, coarse.coarse, objects, edges, ghosts, coarse.tfp, hist.words, s
     )
-    return Masks(co.coarse, fine, region, left, tfp)
+    return Masks(coarse.coarse, fine, region, left, tfp)
 
 
 def _compute(
     window: np.ndarray | PackedWindow,
     center: int,
     start: int,
-    p: Mapping[str, Any],
-    memo: MutableMapping[str, Any] | None = None,
+    s: CfsrSettings,
+    memo: Memo | None = None,
 ) -> Output:
-    rate, masks = fine_stage(window, center, int(start) + int(center), p, memo)
+    rate, masks = fine_stage(window, center, int(start) + int(center), s, memo)
     return Output(rate, masks)
 
 
@@ -264,10 +265,10 @@ def _compute_packed(
     layout,
     center: int,
     start: int,
-    p: Mapping[str, Any],
-    memo: MutableMapping[str, Any] | None = None,
+    s: CfsrSettings,
+    memo: Memo | None = None,
 ) -> Output:
-    return _compute(PackedWindow.from_packed(packed, layout), center, start, p, memo)
+    return _compute(PackedWindow.from_packed(packed, layout), center, start, s, memo)
 
 
 register(

@@ -39,7 +39,7 @@ def patchmatch_refine(
         # a match reaching beyond the computed tiles reads NaN and is never taken (pm_frames);
         # one tile more than a pixel's own patch reads at zero motion leaves room for the
         # motion (with none, the blades' moving pixels lost 0.11 dB; docs/methods.md)
-        reach = match_reach(int(s.pm_patch), float(s.pm_sigma)) + TILE
+        reach = match_reach(s.pm_patch, s.pm_sigma) + TILE
         tiles = pm_tiles(region, reach)
         ty, tx = np.nonzero(tiles)
         y0, y1 = ty.min() * TILE, min(h, (ty.max() + 1) * TILE)
@@ -58,7 +58,7 @@ def patchmatch_refine(
     # the reference t first, then t -+ each offset inside the window
     tcs = [center] + [c for d in s.pm_offsets for c in (center - d, center + d) if 0 <= c < n]
     # the guides go straight into the buffer the search reads (no padded copy of every frame)
-    padded, view = padded_guides(len(tcs), int(y1 - y0), int(x1 - x0), int(s.pm_patch))
+    padded, view = padded_guides(len(tcs), int(y1 - y0), int(x1 - x0), s.pm_patch)
     raw, guides = pm_frames(
         src,
         tcs,
@@ -69,7 +69,7 @@ def patchmatch_refine(
         bank=bank,
         shift=seed - center,
     )
-    finish_padding(padded, int(s.pm_patch))
+    finish_padding(padded, s.pm_patch)
     refined = patchmatch_fuse(
         raw[0],
         guides[0],

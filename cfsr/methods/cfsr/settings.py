@@ -4,15 +4,15 @@ quality tier, read by every stage of the pipeline (:mod:`cfsr.methods.cfsr.pipel
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import Any
 
-from cfsr.methods.cfsr.coarse import CoarseSettings, CsrSettings, tfi_dynamic
+from cfsr.methods.cfsr.coarse import CoarseSettings, CsrSettings, DynamicEstimator, tfi_dynamic
+from cfsr.methods.cfsr.params import MogSides, Quality
 from cfsr.methods.cfsr.slow_motion import SlowSettings
 from cfsr.methods.cfsr.tiers import effective_params
-from cfsr.methods.registry import Settings
+from cfsr.methods.registry import MethodSettings, Params
+from cfsr.methods.tfp import RateRule
 
 __all__ = ["CfsrSettings", "pm_offsets"]
 
@@ -29,13 +29,13 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     mog_frames: int  #: CSR history frames K, ending at t
     mog_stride: int  #: steps between history frames
     mog_window: int  #: TFP window of the history frames, steps
-    mog_estimator: str  #: tfp or isi
+    mog_estimator: RateRule
     mog_history: int  #: MOG history length, frames (0: mog_frames)
     mog_mixtures: int
     mog_ratio: float
     mog_noise: float  #: 8-bit levels (0: OpenCV's default)
     mog_gain: float  #: spikes/step shown as 255 (0: auto)
-    mog_sides: str  #: past or both
+    mog_sides: MogSides
     mog_span: int  #: steps
     mog_future_frames: int
     mog_future_stride: int  #: steps
@@ -59,7 +59,7 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     pm_guide: int  #: intervals (0: the TFI)
     pm_sigma: float  #: pixels (0: none)
     pm_h: float  #: spikes/step (0: plain average)
-    quality: str  #: full or fast (already applied)
+    quality: Quality  #: already applied
     carry_span: int  #: steps (0: no carried work)
     carry_gap: int  #: steps
     adaptive: bool
@@ -68,12 +68,12 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     static_window: int  #: steps
 
     @classmethod
-    def of(cls, p: Mapping[str, Any] | Settings) -> CfsrSettings:
+    def of(cls, p: Params | MethodSettings) -> CfsrSettings:
         """A settings object as it is, else the resolved parameters ``p`` under their
         ``quality`` tier (:func:`effective_params`)."""
         if isinstance(p, cls):
             return p
-        if isinstance(p, Settings):
+        if isinstance(p, MethodSettings):
             return super().of(p)
         return super().of(effective_params(p))
 
@@ -87,7 +87,9 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     def sharp(self) -> CsrSettings:
         """:attr:`coarse` with the span rule over ``mog_span`` centred steps at t as the
         dynamic estimate: Eq. 9's sharp rate under ``mog_sides = both``."""
-        return replace(self.coarse, dynamic_estimator="steady", dynamic_span=int(self.mog_span))
+        return replace(
+            self.coarse, dynamic_estimator=DynamicEstimator.STEADY, dynamic_span=self.mog_span
+        )
 
     @cached_property
     def pm_offsets(self) -> tuple[int, ...]:
@@ -98,7 +100,7 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     @property
     def two_sided(self) -> bool:
         """Whether Eq. 9 tests the sharp rate at t against both backgrounds (``mog_sides``)."""
-        return self.mog_sides == "both"
+        return self.mog_sides == MogSides.BOTH
 
     @cached_property
     def carry_key(self) -> CfsrSettings:
@@ -107,13 +109,12 @@ class CfsrSettings(CoarseSettings, SlowSettings):
         return replace(self, carry_span=0, carry_gap=1)
 
 
-def pm_offsets(p: Mapping[str, Any] | Settings) -> tuple[int, ...]:
+def pm_offsets(s: CfsrSettings) -> tuple[int, ...]:
     """Steps from t of the PatchMatch frames on each side, ascending (Eq. 12's neighbouring
     frames): ``pm_step * i`` for ``i = 1..pm_count``, then ``pm_far_count`` more
-    ``pm_far_step`` apart beyond them. ``p``: resolved parameters or a settings object."""
-    get = p.get if isinstance(p, Mapping) else lambda k: getattr(p, k)
-    step, count = int(get("pm_step")), int(get("pm_count"))
+    ``pm_far_step`` apart beyond them."""
+    step, count = s.pm_step, s.pm_count
     near = [step * i for i in range(1, count + 1)]
     end = near[-1] if near else 0
-    far = int(get("pm_far_step"))
-    return (*near, *(end + far * j for j in range(1, int(get("pm_far_count")) + 1)))
+    far = s.pm_far_step
+    return (*near, *(end + far * j for j in range(1, s.pm_far_count + 1)))

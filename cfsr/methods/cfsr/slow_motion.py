@@ -32,9 +32,9 @@ allows").
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -50,7 +50,7 @@ from cfsr._words import (
     row_words,
 )
 from cfsr.methods._spiketimes import candidate_run
-from cfsr.methods.registry import MAX_WINDOW_STEPS, Param, Settings
+from cfsr.methods.registry import MAX_WINDOW_STEPS, MethodSettings, Param
 
 __all__ = [
     "SLOW_PARAMS",
@@ -334,7 +334,7 @@ def _slow_kernel(src, rule, cand, rate, half, count):  # pragma: no cover - numb
 
 
 @dataclass(frozen=True)
-class SlowSettings(Settings):
+class SlowSettings(MethodSettings):
     """The slow-motion stage's parameters (:data:`SLOW_PARAMS`: meaning, unit and range);
     CFSR's settings extend them."""
 
@@ -357,9 +357,9 @@ class SlowSettings(Settings):
     slow_rough: float
 
 
-def slow_reach(p: Mapping[str, Any] | SlowSettings) -> int:
+def slow_reach(s: SlowSettings) -> int:
     """Steps on each side of t the slow-motion stage reads (0: off)."""
-    return int(SlowSettings.of(p).slow_reach)
+    return s.slow_reach
 
 
 def _halves(reach: int, n_before: int, n_after: int, rungs: int = 1) -> np.ndarray:
@@ -462,7 +462,7 @@ def slow_fuse(
     center: int,
     rate: np.ndarray,
     fine: np.ndarray | None,
-    p: Mapping[str, Any] | SlowSettings,
+    s: SlowSettings,
     active: np.ndarray | None = None,
     noise: float | None = None,
 ) -> np.ndarray:
@@ -482,28 +482,27 @@ def slow_fuse(
     than the static estimate, so ``rate`` is returned. Rates in spikes per step, float32
     (H, W).
     """
-    s = SlowSettings.of(p)
-    reach = int(s.slow_reach)
-    noisy = noise is not None and noise > float(s.slow_noise)
+    reach = s.slow_reach
+    noisy = noise is not None and noise > s.slow_noise
     has_fine = fine is not None and bool(fine.any())
-    if reach <= 0 or (noisy and not (has_fine and noise <= float(s.slow_region_noise))):
+    if reach <= 0 or (noisy and not (has_fine and noise <= s.slow_region_noise)):
         return rate
     h, w = rate.shape
     cand = np.ones((h, w), bool) if active is None else active
     slow, half, count = slow_rates(
-        src, center, cand, reach=reach, slack=float(s.slow_slack), rungs=int(s.slow_rungs)
+        src, center, cand, reach=reach, slack=s.slow_slack, rungs=s.slow_rungs
     )
     whole = count - 1  # whole intervals between the window's first and last spike
     # under temporal noise only the slow class below: a still pixel's window ends early there
-    take = (half >= int(s.slow_min)) & (whole >= int(s.slow_intervals)) & (not noisy)
+    take = (half >= s.slow_min) & (whole >= s.slow_intervals) & (not noisy)
     out = np.where(take, slow, rate)
     if has_fine:
         wgt = np.where(
-            (half >= int(s.slow_fine_full)) & (int(s.slow_fine_full) > 0),
+            (half >= s.slow_fine_full) & (s.slow_fine_full > 0),
             np.float32(1.0),
             np.float32(s.slow_fine_weight),
         )
-        inner = fine & (half >= int(s.slow_fine_min)) & (whole >= int(s.slow_fine_intervals))
+        inner = fine & (half >= s.slow_fine_min) & (whole >= s.slow_fine_intervals)
         wgt = np.where(inner & (not noisy), wgt, np.float32(0.0))
         wgt = _slow_class(slow, rate, half, whole, fine, cand, wgt, s)
         out = np.where(fine, wgt * slow + (1 - wgt) * rate, out)
@@ -515,7 +514,7 @@ def slow_class(
     whole: np.ndarray,
     fine: np.ndarray,
     cand: np.ndarray,
-    p: Mapping[str, Any] | SlowSettings,
+    s: SlowSettings,
 ) -> np.ndarray:
     """The fine-region pixels of the slow class (bool (H, W)): a region whose windows are
     nearly all long, i.e. whose motion stays under a fraction of a pixel over them.
@@ -528,19 +527,18 @@ def slow_class(
     speed class of the region: a fast mover has short windows at its edges and within its
     texture, which a lone long window inside it does not outweigh.
     """
-    s = SlowSettings.of(p)
-    side = int(s.slow_region)
+    side = s.slow_region
     if side <= 0:
         return np.zeros(fine.shape, bool)
     import cv2
 
-    a = int(s.slow_region_half)
+    a = s.slow_region_half
     long_ = ((half >= a) | ~cand).astype(np.float32)
     share = cv2.blur(long_, (side, side))  # the square's mean, mirrored at the frame's edge
     return (
         fine
         & (half >= a)
-        & (whole >= int(s.slow_region_intervals))
+        & (whole >= s.slow_region_intervals)
         & (share >= np.float32(s.slow_region_share) - np.float32(1e-6))
     )
 
@@ -558,12 +556,12 @@ def _slow_class(slow, rate, half, whole, fine, cand, wgt, s: SlowSettings) -> np
     (:func:`slow_class`) moved ``slow_region_weight`` of the way to the window's rate, unless
     the windows' rates there are ``slow_rough`` times rougher than PatchMatch's (a
     fixed-pattern spread that only PatchMatch's average of other pixels cancels)."""
-    rw = float(s.slow_region_weight)
+    rw = s.slow_region_weight
     if rw <= 0.0:
         return wgt
     cls = slow_class(half, whole, fine, cand, s)
     if not cls.any():
         return wgt
-    if _rough(slow, cls) > float(s.slow_rough) * _rough(rate, cls):
+    if _rough(slow, cls) > s.slow_rough * _rough(rate, cls):
         return wgt
     return np.where(cls, wgt + (1 - wgt) * np.float32(rw), wgt).astype(np.float32)

@@ -34,7 +34,7 @@ from cfsr._words import PackedWindow
 from cfsr.methods.cfsr.coarse import span_estimator
 from cfsr.methods.cfsr.patchmatch_frames import pm_tiles
 from cfsr.methods.cfsr.settings import CfsrSettings
-from cfsr.methods.tfp import fill_sparse_stored, isi_span_stored
+from cfsr.methods.tfp import RateRule, fill_sparse_stored, isi_span_stored
 
 __all__ = [
     "active_tiles",
@@ -246,8 +246,8 @@ def gated_rate(
     """The output of a window the static gate passes (``gate``: its counts over the last
     span): the static estimate over ``[pa, pb)``, spikes per step in [0, 1]. Such a window
     has no mover for the steady check to catch, so the isi rule applies as is."""
-    if span_estimator(s) == "isi":  # below two spikes: the TFI at t
-        tfp = span_isi_rate(src, pa, pb, center=center, max_isi=int(s.max_isi))
+    if span_estimator(s) == RateRule.ISI:  # below two spikes: the TFI at t
+        tfp = span_isi_rate(src, pa, pb, center=center, max_isi=s.max_isi)
     else:
         counts = gate if pb - pa == s.static_window else span_counts(src, pa, pb)
         tfp = counts / np.float32(max(1, pb - pa))
@@ -263,7 +263,7 @@ def tile_gates(
     The slow-motion windows look only where the gate per tile finds a change (its tiles are
     still: their rate is a long window's already) whatever ``adaptive`` and the gate
     settings, so that every pipeline gives a still window the same output."""
-    tile, tol, adaptive = int(s.static_tile), int(s.static_tol), s.adaptive
+    tile, tol, adaptive = s.static_tile, s.static_tol, s.adaptive
 
     def tiles(tol: int, tile: int) -> np.ndarray | None:
         a = active_tiles(src, pb, s.static_window, tol, tile)

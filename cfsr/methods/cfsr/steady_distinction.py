@@ -31,6 +31,7 @@ Without temporal noise the median spread is 0 and the fixed tolerances apply.
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import NamedTuple
 
 import numpy as np
@@ -49,6 +50,7 @@ from cfsr._words import (
     range_times,
     row_or_stored,
 )
+from cfsr.methods.registry import choices_of
 from cfsr.methods.tfp import span_rate
 
 __all__ = [
@@ -59,10 +61,19 @@ __all__ = [
     "steady_mask",
     "check_static",
     "DISTINCTIONS",
+    "Distinction",
 ]
 
+
+class Distinction(StrEnum):
+    """The coarse distinction's rule."""
+
+    STEADY = "steady"  #: the interval spread around t, regularised (this module)
+    ISI_SET = "isi_set"  #: distinct ISIs in T >= theta (Eq. 5-6, the paper's)
+
+
 #: Coarse distinctions: ``steady`` (this module) or ``isi_set`` (Eq. 5-6, the paper's).
-DISTINCTIONS = ("steady", "isi_set")
+DISTINCTIONS = choices_of(Distinction)
 
 
 @njit(helper=True)

@@ -5,11 +5,14 @@ tiers"), and how a frame's parameters take its tier.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING
 
 from cfsr.methods.cfsr.coarse import CSR_PARAMS
-from cfsr.methods.cfsr.params import FINE_PARAMS
+from cfsr.methods.cfsr.params import FINE_PARAMS, MogSides, Quality
+from cfsr.methods.registry import Params
+
+if TYPE_CHECKING:
+    from cfsr.config import MethodConfig
 
 __all__ = ["QUALITY_TIERS", "effective_params", "fast_config"]
 
@@ -17,14 +20,14 @@ __all__ = ["QUALITY_TIERS", "effective_params", "fast_config"]
 #: What each ``quality`` tier changes (docs/methods.md, "Quality tiers"). ``fast`` is the
 #: cheapest point measured by ``cfsr bench --tiers`` that stays within 0.5 dB (whole frame) and
 #: 1.0 dB (motion region) of ``full`` on every simulator scene.
-QUALITY_TIERS: dict[str, dict[str, Any]] = {
-    "full": {},
-    "fast": {
+QUALITY_TIERS: dict[Quality, Params] = {
+    Quality.FULL: {},
+    Quality.FAST: {
         # the same reach of history (~380 steps) in 4 frames instead of 12, and the paper's
         # Eq. 9 on the past alone (no mirrored history after t): no scene moved by 0.1 dB
         "mog_frames": 4,
         "mog_stride": 96,
-        "mog_sides": "past",
+        "mog_sides": MogSides.PAST,
         # a 200-step distinction window and a 300-step still-pixel reach: within 0.05 dB
         "T": 200,
         "still_reach": 300,
@@ -44,20 +47,20 @@ QUALITY_TIERS: dict[str, dict[str, Any]] = {
 _DEFAULTS = {k: prm.default for k, prm in {**CSR_PARAMS, **FINE_PARAMS}.items()}
 
 
-def effective_params(p: Mapping[str, Any]) -> Mapping[str, Any]:
+def effective_params(p: Params) -> Params:
     """The parameters one frame runs with: ``p`` with its ``quality`` tier's settings
     (:data:`QUALITY_TIERS`) in place of the values left at their defaults. A parameter set to
     any other value keeps it (a value equal to the default cannot be told from an unset one:
     the tier replaces it). ``full`` returns ``p`` itself."""
-    tier = QUALITY_TIERS[p.get("quality", "full")]
+    tier = QUALITY_TIERS[Quality(p.get("quality", Quality.FULL))]
     if not tier:
         return p
     return {**p, **{k: v for k, v in tier.items() if p.get(k, _DEFAULTS[k]) == _DEFAULTS[k]}}
 
 
-def fast_config(cfg: Any) -> Any:
+def fast_config(cfg: MethodConfig) -> MethodConfig:
     """The ``fast`` tier of a CFSR :class:`~cfsr.config.MethodConfig` (its other parameters
     kept); a config of another method is returned as it is."""
     if cfg.method != "cfsr":
         return cfg
-    return cfg.replace(params={"quality": "fast"})
+    return cfg.replace(params={"quality": Quality.FAST})
