@@ -93,7 +93,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
         if rt is None:
             rt = Runtime(settings)
             await asyncio.to_thread(rt.start)
-        hub = FrameHub(rt.slot)
+        hub = FrameHub(rt.slot, on_viewers=rt.set_viewers)
         app.state.runtime = rt
         app.state.hub = hub
         task = asyncio.create_task(hub.run(), name="cfsr-hub")

@@ -11,77 +11,48 @@ are in :mod:`cfsr_live.service.worker_loop`.
 
 from __future__ import annotations
 
-import functools
 import os
 import time
 from collections import deque
-from typing import Any, NamedTuple
+from typing import Any
 
-from cfsr.config import MethodConfig
 from cfsr.display import auto_gain, to_display
 from cfsr.layout import Layout
-from cfsr.methods.registry import get_method
 from cfsr.pool import FramePool, PoolError, TaskError
 from cfsr.streaming import StreamingReconstructor
-from cfsr.warmup import measured_compile
 from cfsr_live.driver.source import BlockFlags
 from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
 from cfsr_live.service.kernels import RECONSTRUCTION_NICE
-from cfsr_live.service.pacing import pick_tier, tiers_of
-from cfsr_live.service.status import CompileProgress
-from cfsr_live.service.worker_messages import RUNG_CODES, Compiling, ConfigAnswer
+from cfsr_live.service.ladder import LadderSteps
+from cfsr_live.service.pacing import FrameTask, late_after_s, pick_tier, tiers_of
+from cfsr_live.service.priority import FramePriority
+from cfsr_live.service.schema import quality_code
+from cfsr_live.service.worker_messages import ConfigAnswer
 from cfsr_live.shm.ring import SpikeRing
 
-__all__ = ["FALLBACK_AFTER_S", "LADDER", "LATE_S", "STAND_IN_FPS", "TASK_HANG_S", "FrameWorker"]
+__all__ = ["TASK_HANG_S", "UNWATCHED_FPS", "FrameWorker"]
 
 
-class _Task(NamedTuple):
-    """A frame handed to the pool: its step, when its newest spike arrived, the tier, the
-    config version it was computed under, when and to which process it went, whether it
-    is that process's first frame of its method and tier (which may wait on the compiler),
-    the step clock its step counts on (:meth:`FrameWorker._restart_clock`), and whether it is a
-    rung of the ladder shown while the config's first frame compiles."""
-
-    step: int
-    arrival: float
-    quality: str
-    version: int
-    submitted: float
-    process: int
-    method: str
-    cold: bool
-    clock: int
-    rung: bool = False  # a stand-in of the ladder (CSR while CFSR compiles), not the config's
 
 
-#: the rung of the ladder shown while a method's first frame waits on its compile, computed
-#: by an idle pool process (TFP, the first rung, is computed by the worker itself)
-LADDER = {"cfsr": "csr"}
-#: most stand-in frames a second (TFP, CSR) while a first frame compiles: enough to see the
-#: scene move, and the CPU goes to the compile the user waits for
-STAND_IN_FPS = 5.0
-
-
-#: a frame whose newest spike arrived longer ago than this is not shown (counted late) when a
-#: newer frame of its config is computing
-LATE_S = 1.0
-#: seconds the first frame under a config may be pending before the worker shows frames of a
-#: ready method (TFP) meanwhile: on a first use that frame waits on numba's compiler
-FALLBACK_AFTER_S = 1.0
+#: frames a second with no client watching: enough for ``/readyz`` and ``/metrics`` to see the
+#: worker publish, without spending the machine on frames nobody sees
+UNWATCHED_FPS = 1.0
 #: a pool task pending longer than this, not counting the time its process spent compiling
 #: kernels (or waiting for another process's compile of them), is taken for a hang
 TASK_HANG_S = 120.0
 
 
-class FrameWorker:
+class FrameWorker(LadderSteps):
     """The worker process's state: the ring reader, the streaming buffer, and the pool of
     processes that reconstruct (:class:`cfsr.pool.FramePool`).
 
     The loop ingests ring blocks into the buffer, hands the newest computable step to an idle
     pool process whenever ``max_fps`` allows, and publishes finished frames in step order:
     a result older than one already shown is dropped (``dropped_order``), one whose spikes
-    arrived more than :data:`LATE_S` ago while a newer frame of its config computes, or
+    arrived longer ago than the pipeline takes at the rate it holds
+    (:func:`~cfsr_live.service.pacing.late_after_s`) while a newer frame of its config computes, or
     computed under a replaced config, too (``dropped_late``). With ``workers`` processes
     several frames are computed at once, each on a different step, so the rate is up to
     ``workers`` times one process's.
@@ -116,17 +87,22 @@ class FrameWorker:
         self._arrival: deque[tuple[int, float]] = deque(maxlen=4096)
         self._clock = 0  # how many times the step clock started again
         self.slow_first = 0.0  # test hook (Inject "slow_first")
+        #: clients watching the frames (None: not told, as a worker run without the web
+        #: process's hub: compute at max_fps)
+        self.viewers: int | None = None
         # not waiting for the processes to start: the heartbeat and the first frames of the
         # loop do not wait on their imports
         self.pool = FramePool(workers, threads, wait=False, nice=RECONSTRUCTION_NICE)
         self.put("workers", self.pool.workers)
         self.put("threads", self.pool.threads)
-        self._tasks: dict[int, _Task] = {}
+        self._tasks: dict[int, FrameTask] = {}
         self._compile_key: tuple[Any, ...] | None = None  # the compile last reported
         #: (process, method) pairs that returned a frame: their kernels are loaded
         self._warm: set[tuple[int, str]] = set()
         self._tag = 0
         self._tiers: dict[str, Any] = {}
+        #: frames below acquisition: pool processes lowered once their kernels are loaded
+        self._priority = FramePriority()
         self._reset_output()
 
     def _reset_output(self) -> None:
@@ -135,7 +111,7 @@ class FrameWorker:
         self._last_shown: int | None = None
         self._first_since: float | None = None  # first task under this config submitted at
         self._first_pending = True
-        self._ready: dict[int, tuple[_Task, Any, float]] = {}  # results waiting for older ones
+        self._ready: dict[int, tuple[FrameTask, Any, float]] = {}  # results waiting for older ones
         self._fallback_next = 0.0
         self._rung = 0  # the highest rung of the ladder shown for this config (RUNG_CODES)
         self._ema: dict[str, float] = {}
@@ -157,7 +133,7 @@ class FrameWorker:
             self.bump("dropped_late", len(self._ready))
             self._ready.clear()
 
-    def _current(self, task: _Task) -> bool:
+    def _current(self, task: FrameTask) -> bool:
         """Whether ``task`` was computed under the running config and step clock."""
         return task.version == self.config.version and task.clock == self._clock
 
@@ -287,17 +263,6 @@ class FrameWorker:
         )
         return tier
 
-    def _compiling_first(self) -> tuple[_Task, Any] | None:
-        """The pending task of the config and its process's compile report, while the
-        config's first frame waits on a compile (or on another process's compile)."""
-        if not self._first_pending:
-            return None
-        for task in self._tasks.values():
-            if not task.rung and self._current(task):
-                beat = self.pool.compiling(task.process)
-                if beat is not None:
-                    return task, beat
-        return None
 
     def _submit(self) -> bool:
         """Hand the newest computable step to an idle pool process, if the pace allows;
@@ -347,39 +312,13 @@ class FrameWorker:
         k = self.pool.submit(tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)],
                              delay=delay)
         cold = (k, cfg.method) not in self._warm
-        self._tasks[tag] = _Task(
+        self._tasks[tag] = FrameTask(
             t, arrival, quality, self.config.version, now, k, cfg.method, cold, self._clock
         )
         self._last_submit = t
-        self._next_out = max(now + 1.0 / self.config.max_fps, time.monotonic())
+        self._next_out = max(now + 1.0 / self._pace_fps(), time.monotonic())
         return True
 
-    def _submit_rung(self, t: int, now: float) -> bool:
-        """While the config's first frame compiles, an idle process computes the method's
-        rung of the ladder (CSR for CFSR: its kernels compile in seconds) at the newest step,
-        one at a time, so the picture climbs from TFP to CSR before CFSR arrives."""
-        rung = LADDER.get(self.config.method.method)
-        rec = self.rec
-        if rung is None or rec is None or any(k.rung for k in self._tasks.values()):
-            return False
-        if self._last_shown is not None and t <= self._last_shown:
-            return False
-        cfg = _rung_config(rung)
-        before, after = cfg.window
-        if t + after >= rec.next_step:
-            t = rec.next_step - after - 1
-        a, b = max(rec.first_step, t - before), min(rec.next_step, t + after + 1)
-        if t < a or (b - a) * rec.layout.frame_bytes > self.pool.region_bytes:
-            return False
-        self._tag += 1
-        k = self.pool.submit(self._tag, cfg, rec.layout, rec.packed(a, b), a, [(a, b, t)])
-        self._tasks[self._tag] = _Task(
-            t, self._arrival_of(t + after), "full", self.config.version, now, k, rung,
-            (k, rung) not in self._warm, self._clock, rung=True,
-        )
-        self._next_out = max(now + 1.0 / min(self.config.max_fps, STAND_IN_FPS),
-                             time.monotonic())
-        return True
 
     def _collect(self) -> bool:
         """Publish the results that are in, in step order; True when one was shown.
@@ -415,17 +354,6 @@ class FrameWorker:
         self._check_hangs()
         return shown
 
-    def _show_rung(self, task: _Task, t: int, out: Any, ms: float) -> None:
-        """Show a rung's frame while the config's first frame still waits (and it is newer
-        than what is shown); the ladder only climbs, so TFP stops once CSR is shown."""
-        if not (self._first_pending and self._current(task)):
-            return
-        if self._last_shown is not None and t <= self._last_shown:
-            return
-        self._rung = max(self._rung, RUNG_CODES[task.method])
-        self.put("fallback", float(self._rung))
-        self._publish(t, out, task.method, task.arrival, ms, timed=False)
-        self.bump("fallback_frames")
 
     def _flush(self) -> bool:
         """Show the waiting results that no older task of their config precedes."""
@@ -451,14 +379,15 @@ class FrameWorker:
             # newest frame there is is shown however old (dropping it leaves an older one up)
             if (
                 not first
-                and time.monotonic() - task.arrival > LATE_S
+                and time.monotonic() - task.arrival > self._late_after(task.quality)
                 and any(self._current(k) and not k.rung and k.step > t
                         for k in self._tasks.values())
             ):
                 self.bump("dropped_late")
                 continue
+            tier = task.quality if "quality" in self.config.method.params else ""
             self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms,
-                          timed=not task.cold)
+                          timed=not task.cold, quality=tier)
             self.bump("q_" + task.quality)
             shown = True
         return shown
@@ -481,49 +410,14 @@ class FrameWorker:
                     "compiled): taken for a hang"
                 )
 
-    def _fallback(self) -> bool:
-        """While the first frame under the config waits on numba's compiler (its process's
-        compile heartbeat says so), show TFP frames, computed here, so the image does not
-        freeze: the ladder's first rung, until a higher one (CSR) is shown. A first frame
-        that is merely slow (no compile) keeps the last frame of the chosen method."""
-        rec = self.rec
-        if (
-            rec is None
-            or not self._first_pending
-            or self._first_since is None
-            or self.config.method.method == "tfp"
-            or self._rung > RUNG_CODES["tfp"]
-            or self._compiling_first() is None
-        ):
-            return False
-        now = time.monotonic()
-        if now - self._first_since < FALLBACK_AFTER_S or now < self._fallback_next:
-            return False
-        t = rec.latest_step()
-        if t is None or (self._last_shown is not None and t <= self._last_shown):
-            return False
-        tfp = get_method("tfp")
-        fb = _rung_config("tfp")
-        before, after = fb.window
-        t0 = time.perf_counter()
-        out = tfp.run_window(
-            rec, max(rec.first_step, t - before), min(rec.next_step, t + after + 1), t,
-            fb.params,
-        )
-        ms = (time.perf_counter() - t0) * 1e3
-        self._rung = max(self._rung, RUNG_CODES["tfp"])
-        self.put("fallback", float(self._rung))
-        self._publish(t, out, "tfp", self._arrival_of(t), ms, timed=False)
-        self.bump("fallback_frames")
-        self._fallback_next = now + 1.0 / min(self.config.max_fps, STAND_IN_FPS)
-        return True
 
     def _publish(
         self, t: int, out: Any, method: str, arrival: float, compute_ms: float,
-        *, timed: bool = True,
+        *, timed: bool = True, quality: str = "",
     ) -> None:
         """Show frame ``t``; ``timed``: its compute and latency join the status's averages
-        (not a process's first frame of a method, whose time holds the kernels' loading)."""
+        (not a process's first frame of a method, whose time holds the kernels' loading);
+        ``quality``: the tier that made it ("" for a method without tiers, or a stand-in)."""
         gain = self.config.gain
         g = float(gain) if gain else auto_gain(out.rate)
         img = to_display(out.rate, g)
@@ -537,7 +431,9 @@ class FrameWorker:
             t_arrival=arrival,
             compute_ms=compute_ms,
             latency_ms=latency_ms,
+            quality=quality,
         )
+        self.put("q_shown", quality_code(quality))
         self._last_shown = t
         self.bump("frames_out")
         if not timed:
@@ -547,28 +443,35 @@ class FrameWorker:
             old = self.st[name]
             self.st[name] = v if old == 0 else (1 - a) * old + a * v
 
-    def _report_compile(self) -> None:
-        """Tell the supervisor what the config's first frame waits on (each change of
-        kernel, count or whole CPU second, and once when no compile holds it any more)."""
-        got = self._compiling_first()
-        key = None if got is None else (got[1].kernel, got[1].kernels, int(got[1].cpu_s))
-        if key == self._compile_key:
-            return
-        self._compile_key = key
-        progress = None
-        if got is not None:
-            task, beat = got
-            table = measured_compile().get("methods", {}).get(task.method, {})
-            progress = CompileProgress(
-                method=task.method, kernel=beat.kernel, waiting=beat.waiting,
-                kernels=beat.kernels, total=len(table.get("kernels", [])) or None,
-                cpu_s=beat.cpu_s, estimate_s=table.get("cpu_s"),
-            )
-        self.evt_q.put(Compiling(progress))
+
+    def watch(self, viewers: int) -> None:
+        """``viewers`` clients watch from now on: with none, compute :data:`UNWATCHED_FPS`
+        frames a second; the first to connect gets a frame at once."""
+        if viewers and not self.viewers:
+            self._next_out = 0.0
+        self.viewers = viewers
+        self.put("viewers", viewers)
+
+    def _pace_fps(self) -> float:
+        """Frames a second to start: ``max_fps``, or :data:`UNWATCHED_FPS` with no viewer."""
+        fps = self.config.max_fps
+        return min(fps, UNWATCHED_FPS) if self.viewers == 0 else fps
+
+    def _late_after(self, quality: str) -> float:
+        """Seconds after its newest spike arrived that a frame of tier ``quality`` is late."""
+        return late_after_s(self._ema.get(quality), self.pool.workers, self.config.max_fps)
+
+    def _lower_priority(self) -> None:
+        """Pool processes that returned a frame compute the next ones below acquisition
+        (:class:`~cfsr_live.service.priority.FramePriority`); the status shows their nice."""
+        pids = self.pool.pids
+        if self._priority.lower(pids[k] for k, _ in self._warm if k < len(pids)):
+            self.put("pool_nice", self._priority.lowest(p for p in pids if p > 0))
 
     def maybe_output(self) -> bool:
         """One round of output: collect and publish, submit the next step, or show a
         fallback frame while the first one waits; True when something happened."""
+        self._lower_priority()
         shown = self._collect()
         submitted = self._submit()
         fell_back = self._fallback()
@@ -576,8 +479,3 @@ class FrameWorker:
         return shown or submitted or fell_back
 
 
-@functools.cache
-def _rung_config(method: str) -> Any:
-    """A rung of the ladder at its default parameters (TFP, the first: cheap, and the
-    first a warm-up compiles; CSR for CFSR)."""
-    return MethodConfig(method)

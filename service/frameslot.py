@@ -25,9 +25,11 @@ from cfsr_live.service.schema import (
     MASK_NAME_BYTES,
     MAX_MASKS,
     METHOD_NAME_BYTES,
+    QUALITY_TIERS,
     SlotFrame,
     WorkerCounters,
     display_masks,
+    quality_code,
 )
 from cfsr_live.shm.files import attach_shared_file, create_shared_file, release_shared_file
 from cfsr_live.shm.seqlock import EMPTY, WRITING, Seqlock
@@ -42,7 +44,8 @@ _HDR = 1024
 _STATS_OFF = 1024
 _PAYLOAD_OFF = 4096
 # int64 header words
-_M, _SEQ, _MAXPIX, _W, _H, _STEP, _FRAMENO, _FLAGS, _NMASKS = 0, 1, 2, 3, 4, 5, 6, 7, 13
+_M, _SEQ, _MAXPIX, _W, _H, _STEP, _FRAMENO, _FLAGS, _NMASKS, _QUALITY = (
+    0, 1, 2, 3, 4, 5, 6, 7, 13, 14)
 # float64 header words (same array viewed as float64)
 _TPUB, _TARR, _COMPUTE, _GAIN, _LAT = 8, 9, 10, 11, 12
 _NAME_OFF = 256  # method name, ASCII, METHOD_NAME_BYTES
@@ -126,7 +129,9 @@ class FrameSlot:
         t_arrival: float,
         compute_ms: float,
         latency_ms: float,
+        quality: str = "",
     ) -> None:
+        """Write the newest frame; ``quality``: the tier that made it ("" for none)."""
         h, w = image.shape
         if h * w > self.max_pixels:
             raise ValueError(f"frame {w} x {h} exceeds the slot ({self.max_pixels} pixels)")
@@ -145,7 +150,7 @@ class FrameSlot:
                 self._masks[name][: h * w] = np.asarray(m, np.uint8).reshape(-1)
                 flags |= 1 << k
         i[_W], i[_H], i[_STEP], i[_FLAGS] = w, h, step, flags
-        i[_FRAMENO] = frame_no
+        i[_FRAMENO], i[_QUALITY] = frame_no, quality_code(quality)
         f[_TPUB], f[_TARR], f[_COMPUTE], f[_GAIN], f[_LAT] = (
             time.monotonic(),
             t_arrival,
@@ -194,7 +199,7 @@ class FrameSlot:
                 if flags & (1 << k)
             }
             meta = (int(i[_FRAMENO]), float(f[_TPUB]), float(f[_TARR]), float(f[_COMPUTE]))
-            gain, lat = float(f[_GAIN]), float(f[_LAT])
+            gain, lat, tier = float(f[_GAIN]), float(f[_LAT]), int(i[_QUALITY])
             raw = bytes(self._mm[_NAME_OFF : _NAME_OFF + METHOD_NAME_BYTES])
             name = raw.split(b"\0")[0].decode()
             if lock.unchanged(0, s1):
@@ -212,5 +217,6 @@ class FrameSlot:
                     latency_ms=lat,
                     image=img,
                     masks=masks,
+                    quality=QUALITY_TIERS[tier] if 0 <= tier < len(QUALITY_TIERS) else "",
                 )
         return None

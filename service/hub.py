@@ -16,6 +16,7 @@ import itertools
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 from cfsr_live.service import schema
@@ -101,8 +102,14 @@ class ClientQueue:
 class FrameHub:
     """Polls the slot, keeps the newest frame, feeds client queues."""
 
-    def __init__(self, slot: FrameSlot, *, poll_s: float = 0.004) -> None:
+    def __init__(
+        self, slot: FrameSlot, *, poll_s: float = 0.004,
+        on_viewers: Callable[[int], None] | None = None,
+    ) -> None:
         self.slot = slot
+        #: told the number of clients when it changes (and once now): the worker computes
+        #: for viewers only
+        self.on_viewers = on_viewers
         self.poll_s = poll_s
         self.clients: dict[int, ClientQueue] = {}
         self.latest: SlotFrame | None = None
@@ -115,9 +122,15 @@ class FrameHub:
         self.errors = 0  # fan-out failures (logged; the loop goes on)
         self.last_error: str | None = None
         self._new = asyncio.Event()
+        self._tell_viewers()
+
+    def _tell_viewers(self) -> None:
+        if self.on_viewers is not None:
+            self.on_viewers(len(self.clients))
 
     def add(self, client: ClientQueue) -> ClientQueue:
         self.clients[client.id] = client
+        self._tell_viewers()
         if self.latest is not None:
             client.offer(self.latest_msg if client.kind == "ws" else self.latest)
         return client
@@ -126,6 +139,7 @@ class FrameHub:
         if self.clients.pop(client.id, None) is not None:
             self.closed_clients_dropped += client.dropped
             self.closed_clients_sent += client.sent
+            self._tell_viewers()
 
     def poll_once(self) -> bool:
         f = self.slot.read(since=self._seq)
@@ -165,13 +179,21 @@ class FrameHub:
                 await asyncio.sleep(0.1)
             await asyncio.sleep(self.poll_s)
 
-    def fps(self, window: float = 2.0) -> float:
+    def fps(self, window: float = 2.0, longest: float = 10.0) -> float:
+        """Frames delivered per second: those of the last ``window`` seconds, or, at a slow
+        rate (fewer than 3 there), of the last ``longest`` seconds, over the time since the
+        first of them (0 with fewer than 2). At one frame a second it reads 1, not 0."""
         now = time.monotonic()
-        ts = [t for t in self._times if now - t <= window]
+        for w in (window, longest):
+            ts = [t for t in self._times if now - t <= w]
+            if len(ts) >= 3:
+                break
         if len(ts) < 2:
             return 0.0
-        span = max(now - ts[0], 1e-6)
-        return (len(ts) - 1) / span if span < window else len(ts) / window
+        # the mean interval between them, or the time since the first once the wait for the
+        # next frame is longer than an interval (a stream that stopped reads lower each poll)
+        span = max(ts[-1] - ts[0], (now - ts[0]) * (len(ts) - 1) / len(ts), 1e-6)
+        return (len(ts) - 1) / span
 
     def status(self) -> HubStatus:
         """The hub's report: output rate, newest frame, and every client's counters (the

@@ -144,6 +144,8 @@ class SchemaModel(BaseModel):
     ws_header_bytes: int
     ws_offsets: dict[str, int] = Field(description="byte offset of each header field")
     method_name_bytes: int
+    quality_tiers: list[str] = Field(description="the header's quality byte: the index of the "
+                                     "tier that made the frame (\"\": a method without tiers)")
     masks: list[MaskInfo] = Field(description="the mask planes, in the order they follow "
                                   "the image; bit k of mask_flags marks plane k present")
     mask_alpha: float = Field(description="opacity of a mask's colour over the image")

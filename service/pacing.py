@@ -1,13 +1,37 @@
-"""How the live worker paces CFSR: the ``auto`` tier's choice between ``full`` and ``fast``
-frames from their measured cost (ms of pool time per frame)."""
+"""How the live worker paces its frames from their measured cost (ms of pool time per frame):
+CFSR's ``auto`` tier's choice between ``full`` and ``fast`` frames, and when a computed frame
+is too late to show."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 from cfsr_live.service.config import WorkerConfig
 
-__all__ = ["pick_tier", "tiers_of"]
+__all__ = ["FrameTask", "LATE_S", "late_after_s", "pick_tier", "tiers_of"]
+
+#: the least age (s, since its newest spike arrived) at which a frame is too late to show while
+#: a newer frame of its config computes; a slower pipeline gets longer (:func:`late_after_s`)
+LATE_S = 1.0
+
+
+class FrameTask(NamedTuple):
+    """A frame handed to the pool: its step, when its newest spike arrived, the tier, the
+    config version it was computed under, when and to which process it went, whether it
+    is that process's first frame of its method and tier (which may wait on the compiler),
+    the step clock its step counts on (the worker's ``_restart_clock``), and whether it is a
+    rung of the ladder shown while the config's first frame compiles."""
+
+    step: int
+    arrival: float
+    quality: str
+    version: int
+    submitted: float
+    process: int
+    method: str
+    cold: bool
+    clock: int
+    rung: bool = False  # a stand-in of the ladder (CSR while CFSR compiles), not the config's
 
 
 def pick_tier(
@@ -47,3 +71,21 @@ def tiers_of(cfg: WorkerConfig) -> dict[str, Any]:
         "full": m.replace(params={"quality": "full"}),
         "fast": m.replace(params={"quality": "fast"}),
     }
+
+
+def late_after_s(frame_ms: float | None, workers: int, max_fps: float) -> float:
+    """Seconds after its newest spike arrived that a computed frame is too late to show (while
+    a newer frame of its config computes): twice what a frame takes through the pool at the
+    rate the machine holds, one frame's compute plus the interval between frames, and never
+    under :data:`LATE_S`.
+
+    ``frame_ms``: measured cost of one frame of its tier (ms of wall time in a pool process,
+    None before one is measured); ``workers``: pool processes; ``max_fps``: the rate asked for.
+    On a busy machine frames take longer and the rate falls: a fixed second threw away most
+    of the frames it had computed, though each was the newest one shown.
+    """
+    if not frame_ms or frame_ms <= 0:
+        return LATE_S
+    compute_s = frame_ms / 1e3
+    interval_s = max(1.0 / max_fps, compute_s / max(1, workers))
+    return max(LATE_S, 2.0 * (compute_s + interval_s))

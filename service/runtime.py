@@ -81,6 +81,7 @@ class Runtime:
         self._lost_base: dict[str, float] = {}
         self._sampler_stop = threading.Event()
         self._sampler: threading.Thread | None = None
+        self._viewers: int | None = None  # clients watching (None: no hub told us)
         self._stopped = False
         self.kernels = KernelWarmup()
 
@@ -103,6 +104,8 @@ class Runtime:
                 threads=self.settings.threads,
             )
             assert self.ring is not None
+            if self._viewers is not None:
+                self.worker.set_viewers(self._viewers)
             self.worker.start(str(self.ring.path), self.source.info.layout)
             if self.settings.warmup:  # a first start compiles every method in the background
                 self.kernels.start(first=self.config.method.method)
@@ -418,6 +421,13 @@ class Runtime:
         if self.last_recording is not None:
             return self.last_recording.model_copy(update={"recording": False})
         return RecordStatus(recording=False)
+
+    def set_viewers(self, count: int) -> None:
+        """``count`` clients watch the frames (the hub says so as they come and go): with none,
+        the worker computes one frame a second."""
+        self._viewers = count
+        if self.worker is not None:
+            self.worker.set_viewers(count)
 
     # -- status -----------------------------------------------------------------------------------
     def _rate_hz(self) -> float:

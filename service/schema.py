@@ -57,6 +57,8 @@ __all__ = [
     "METHOD_NAME_BYTES",
     "WS_HEADER",
     "WS_VERSION",
+    "QUALITY_TIERS",
+    "quality_code",
     "WorkerCounters",
     "counter_meanings",
     "decode_ws_message",
@@ -87,9 +89,11 @@ class WorkerCounters:
     frames_out: int = _counter("frames published", int)
     steps_ingested: int = _counter("steps copied from the ring into the reconstructor", int)
     worker_skip_frames: int = _counter(
-        "steps skipped because the reconstructor fell behind the ring (spike data lost)", int)
-    ring_lost_frames: int = _counter("steps overwritten in the ring before the worker read "
-                                     "them (spike data lost)", int)
+        "steps the display skipped because the reconstructor fell behind the ring (no spike "
+        "data lost: the recorder reads the ring on its own)", int)
+    ring_lost_frames: int = _counter(
+        "steps overwritten in the ring before the worker read them: the display skipped "
+        "them (no spike data lost: the recorder reads the ring on its own)", int)
     ring_overruns: int = _counter("times the ring's writer overran the worker", int)
     ring_torn: int = _counter("ring blocks read while being written, read again", int)
     gaps: int = _counter("breaks in the step sequence the worker saw", int)
@@ -116,6 +120,13 @@ class WorkerCounters:
         "2 CSR)", int
     )
     fallback_frames: int = _counter("stand-in frames shown that way", int)
+    q_shown: int = _counter("the tier that made the frame shown last (0 none, 1 full, 2 fast)",
+                            int)
+    viewers: int = _counter("clients watching the frames, as the worker was last told (with "
+                            "none it computes one frame a second)", int)
+    pool_nice: int = _counter(
+        "nice value the reconstruction pool's processes compute frames at (the least nice of "
+        "them; raised above acquisition's once every kernel is cached and loaded)", int)
 
     @classmethod
     def from_record(cls, rec: np.void | np.ndarray) -> WorkerCounters:
@@ -179,14 +190,17 @@ def mask_color(name: str) -> tuple[int, int, int]:
 
 # -- the WebSocket frame message ----------------------------------------------------------------
 WS_MAGIC = b"CFSR"
-WS_VERSION = 2
-WS_HEADER = struct.Struct(f"<4sHHqIHHBB2xfff{METHOD_NAME_BYTES}s")
+WS_VERSION = 3
+WS_HEADER = struct.Struct(f"<4sHHqIHHBBBxfff{METHOD_NAME_BYTES}s")
+#: the ``quality`` byte of the header: the tier that made the frame (index into this tuple;
+#: "" for a frame of a method without tiers)
+QUALITY_TIERS: tuple[str, ...] = ("", "full", "fast")
 assert WS_HEADER.size == 64
 
 #: byte offsets of the header's fields, as the viewer reads them (``GET /api/schema``)
 WS_OFFSETS = {
     "magic": 0, "version": 4, "header_bytes": 6, "step": 8, "frame_no": 16, "width": 20,
-    "height": 22, "mask_flags": 24, "mask_planes": 25, "gain": 28, "compute_ms": 32,
+    "height": 22, "mask_flags": 24, "mask_planes": 25, "quality": 26, "gain": 28, "compute_ms": 32,
     "latency_ms": 36, "method": 40,
 }
 
@@ -209,6 +223,8 @@ class SlotFrame:
     latency_ms: float
     image: np.ndarray
     masks: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the tier that made the frame (:data:`QUALITY_TIERS`; "" for a method without tiers)
+    quality: str = ""
 
 
 def encode_ws_message(f: SlotFrame, mask_names: tuple[str, ...]) -> bytes:
@@ -226,16 +242,22 @@ def encode_ws_message(f: SlotFrame, mask_names: tuple[str, ...]) -> bytes:
             parts.append(bytes((n + 7) // 8))
     head = WS_HEADER.pack(
         WS_MAGIC, WS_VERSION, WS_HEADER.size, f.step, f.frame_no & 0xFFFFFFFF, f.width,
-        f.height, flags, len(mask_names), f.gain, f.compute_ms, f.latency_ms,
+        f.height, flags, len(mask_names), quality_code(f.quality), f.gain, f.compute_ms,
+        f.latency_ms,
         f.method.encode("ascii", "replace")[:METHOD_NAME_BYTES],
     )
     return b"".join([head, f.image.tobytes(), *parts])
 
 
+def quality_code(tier: str | None) -> int:
+    """The header's byte for ``tier`` (0 for none or an unknown one)."""
+    return QUALITY_TIERS.index(tier) if tier in QUALITY_TIERS else 0
+
+
 def decode_ws_message(msg: bytes, mask_names: tuple[str, ...]) -> dict[str, Any]:
     """Inverse of :func:`encode_ws_message` (tests and Python clients; ``mask_names`` as
     ``GET /api/schema`` gives them)."""
-    (magic, ver, hlen, step, frame_no, w, h, flags, planes, gain, comp, lat,
+    (magic, ver, hlen, step, frame_no, w, h, flags, planes, quality, gain, comp, lat,
      name) = WS_HEADER.unpack_from(msg)
     if magic != WS_MAGIC:
         raise ValueError(f"not a CFSR frame message (magic {magic!r})")
@@ -253,6 +275,7 @@ def decode_ws_message(msg: bytes, mask_names: tuple[str, ...]) -> dict[str, Any]
     return {
         "version": ver, "step": step, "frame_no": frame_no, "width": w, "height": h,
         "gain": gain, "compute_ms": comp, "latency_ms": lat,
+        "quality": QUALITY_TIERS[quality] if quality < len(QUALITY_TIERS) else "",
         "method": name.rstrip(b"\0").decode(), "image": img, "masks": masks,
     }
 
@@ -267,6 +290,7 @@ def schema_document(mask_names: tuple[str, ...]) -> dict[str, Any]:
         "ws_header_bytes": WS_HEADER.size,
         "ws_offsets": WS_OFFSETS,
         "method_name_bytes": METHOD_NAME_BYTES,
+        "quality_tiers": list(QUALITY_TIERS),
         "masks": [{"name": m, "color": list(mask_color(m)),
                    "meaning": MASK_STYLE.get(m, ((0, 0, 0), ""))[1]} for m in mask_names],
         "mask_alpha": MASK_ALPHA,

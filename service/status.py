@@ -220,9 +220,13 @@ class QualityShare(BaseModel):
         description="auto (full when the frame rate allows it, fast frames between), full or "
         "fast; None for a method without tiers",
     )
-    full: int = Field(0, description="frames shown at full quality (every frame of a method "
-                      "without tiers)")
-    fast: int = Field(0, description="frames shown at the fast tier")
+    shown: str | None = Field(
+        None, description="the tier that made the frame shown last (full or fast; None before "
+        "one of the current method, or for a method without tiers)")
+    full: int = Field(0, description="frames shown at full quality in the last 10 s under the "
+                      "current config (every frame of a method without tiers)")
+    fast: int = Field(0, description="frames shown at the fast tier in the last 10 s under the "
+                      "current config")
 
 
 class CompileProgress(BaseModel):
@@ -269,8 +273,9 @@ class WorkerStatus(BaseModel):
     quality: QualityShare = Field(default_factory=QualityShare)
     dropped_late: int = Field(
         0,
-        description="frames computed but not shown: their spikes arrived over a second ago, "
-        "or their config was replaced (no spike data lost)",
+        description="frames computed but not shown: a newer frame was computing and their "
+        "spikes arrived longer ago than twice what a frame takes at the rate the machine holds "
+        "(at least a second), or their config was replaced (no spike data lost)",
     )
     dropped_order: int = Field(
         0,
@@ -287,6 +292,12 @@ class WorkerStatus(BaseModel):
         None, description="the compile the first frame under the config waits on, if any"
     )
     fallback_frames: int = Field(0, description="frames of the fallback method shown so far")
+    reconstruction_nice: int = Field(
+        0,
+        description="nice value the reconstruction pool computes frames at: above the "
+        "acquisition's (0) once every kernel is cached and loaded, so a busy machine takes CPU "
+        "from frames, not from spike data (compiles run at 0: they are what a user waits for)",
+    )
 
 
 class WorkerReport(BaseModel):
@@ -296,7 +307,9 @@ class WorkerReport(BaseModel):
     status: WorkerStatus
     latency_ms: float = Field(0.0, description="newest spike used -> frame published (EMA)")
     compute_ms: float = Field(0.0, description="reconstruction time per frame (EMA)")
-    ring_lost_frames: int = Field(0, description="frames the ring overwrote before the worker")
+    ring_lost_frames: int = Field(
+        0, description="frames the ring overwrote before the worker read them: skipped by the "
+        "display, not lost (the recorder reads the ring on its own)")
     skipped_frames: int = Field(0, description="frames the worker skipped to show the newest")
 
     @classmethod
@@ -351,7 +364,8 @@ class RecordStatus(BaseModel):
 class Drops(BaseModel):
     usb: int = Field(0, description="frames lost on the USB link (index gaps, bad blocks)")
     replay: int = Field(0, description="frames a paced replay skipped to stay on schedule")
-    ring: int = Field(0, description="frames the worker lost because the ring overran it")
+    ring: int = Field(0, description="frames the display skipped because the ring overran the "
+                      "worker (spike data is not lost: the recorder reads the ring on its own)")
     worker: int = Field(0, description="frames the worker skipped to show the newest data")
     clients: int = Field(0, description="frames replaced before a client could receive them")
     recorder: int = Field(0, description="frames the current/last recording lost")

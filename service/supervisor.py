@@ -25,7 +25,7 @@ from cfsr.layout import Layout
 from cfsr.procs import release_queue, stop_signals_blocked
 from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
-from cfsr_live.service.schema import WorkerCounters
+from cfsr_live.service.schema import QUALITY_TIERS, WorkerCounters
 from cfsr_live.service.status import (
     CompileProgress,
     QualityShare,
@@ -44,12 +44,16 @@ from cfsr_live.service.worker_messages import (
     Inject,
     Ready,
     Stop,
+    Viewers,
     WorkerError,
 )
 
 __all__ = ["WorkerSupervisor"]
 
 log = logging.getLogger("cfsr.worker")
+
+#: seconds of frames the quality shares in the status count (since the last config change)
+SHARE_WINDOW_S = 10.0
 
 def _worker_entry(*args: Any) -> None:
     """The worker process's entry point (runs in the spawned child): the one import of the
@@ -120,6 +124,9 @@ class WorkerSupervisor:
         self._last_message: str | None = None
         self._counter_base: dict[str, int] = {}
         self._ingest = RateMeter()  # steps ingested per second, sampled by :meth:`sample`
+        self._viewers: int | None = None  # clients watching, as last told (None: not told)
+        #: (time, config version, frames shown full, fast) sampled by :meth:`sample`
+        self._shares: deque[tuple[float, int, int, int]] = deque()
 
     # -- lifecycle --------------------------------------------------------------------------------
     def start(self, ring_path: str, layout: Layout) -> None:
@@ -154,6 +161,8 @@ class WorkerSupervisor:
             )
             with stop_signals_blocked():  # until the worker ignores them (worker_main)
                 self._proc.start()
+            if self._viewers is not None:  # a restarted worker knows who watches
+                self._cmd_q.put(Viewers(self._viewers))
             self._started_at = time.monotonic()
             self._last_message = None
 
@@ -242,6 +251,14 @@ class WorkerSupervisor:
             self._ring_path, self._layout = ring_path, layout
             self._send(Attach(ring_path, layout))
 
+    def set_viewers(self, count: int) -> None:
+        """``count`` clients watch the frames: with none the worker computes one frame a
+        second, and resumes ``max_fps`` as soon as one connects."""
+        with self._lock:
+            if count != self._viewers:
+                self._viewers = count
+                self._send(Viewers(count))
+
     def inject(self, fault: Literal["crash", "raise", "slow_first"], **kw: Any) -> None:
         """Test hooks: ``crash`` (hard exit, ``code=``), ``raise`` (uncaught Python
         exception, ``message=``) or ``slow_first`` (the next first frame under a config
@@ -296,6 +313,7 @@ class WorkerSupervisor:
         backoff = 0.5
         while not self._stop.wait(0.1):
             self._drain()
+            self._sample_tiers()
             with self._lock:
                 proc = self._proc
                 if proc is None:
@@ -369,6 +387,34 @@ class WorkerSupervisor:
         the status is read."""
         self._ingest.add(self.stats().steps_ingested)
 
+    def _sample_tiers(self) -> None:
+        """Take one sample of the frames shown per tier (for the status's quality shares);
+        the monitor thread's tick."""
+        st = self.stats()
+        now = time.monotonic()
+        with self._lock:
+            if self._shares and self._shares[-1][1] != st.config_version:
+                self._shares.clear()  # a change of mode: its shares start again
+            self._shares.append((now, st.config_version, st.q_full, st.q_fast))
+            while now - self._shares[0][0] > SHARE_WINDOW_S:
+                self._shares.popleft()
+
+    def _recent_tiers(self, st: WorkerCounters) -> tuple[int, int]:
+        """Frames shown at each tier (full, fast) in the last :data:`SHARE_WINDOW_S` seconds
+        under the running config (none before its first sample)."""
+        with self._lock:
+            if not self._shares or self._shares[0][1] != st.config_version:
+                return 0, 0
+            _, _, full, fast = self._shares[0]
+        return max(0, st.q_full - full), max(0, st.q_fast - fast)
+
+    def _quality(self, st: WorkerCounters) -> QualityShare:
+        """CFSR's tier mode and the frames shown at each tier lately (:meth:`_recent_tiers`)."""
+        full, fast = self._recent_tiers(st)
+        mode = self.config.quality if "quality" in self.config.method.params else None
+        shown = QUALITY_TIERS[st.q_shown] if 0 < st.q_shown < len(QUALITY_TIERS) else None
+        return QualityShare(mode=mode, shown=shown if mode else None, full=full, fast=fast)
+
     def status(self, rate_hz: float) -> WorkerReport:
         """The supervisor's report: the worker's state (``worker`` in ``GET /api/status``)
         and the figures it measures; ``rate_hz`` is the sensor rate the ingest rate is a
@@ -398,12 +444,8 @@ class WorkerSupervisor:
                 fallback_frames=st.fallback_frames,
                 workers=self.workers,
                 threads_per_worker=self.threads,
-                quality=QualityShare(
-                    mode=self.config.quality if "quality" in self.config.method.params
-                    else None,
-                    full=st.q_full,
-                    fast=st.q_fast,
-                ),
+                quality=self._quality(st),
+                reconstruction_nice=st.pool_nice,
                 fallback_method=RUNG_NAMES.get(int(st.fallback)) if first else None,
                 compiling=self.compiling if first else None,
             ),

@@ -29,6 +29,7 @@ from cfsr_live.service.worker_messages import (
     Inject,
     Ready,
     Stop,
+    Viewers,
     WorkerError,
 )
 
@@ -89,6 +90,8 @@ def worker_main(
                         return
                     if isinstance(cmd, Configure):
                         w.configure(cmd.config)
+                    elif isinstance(cmd, Viewers):
+                        w.watch(cmd.count)
                     elif isinstance(cmd, Attach):
                         w.attach(cmd.ring_path, cmd.layout)
                     elif isinstance(cmd, Inject) and cmd.fault == "slow_first":

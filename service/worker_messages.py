@@ -30,6 +30,7 @@ __all__ = [
     "Inject",
     "Ready",
     "Stop",
+    "Viewers",
     "WorkerError",
 ]
 
@@ -64,6 +65,15 @@ class Inject:
     code: int = 3
     message: str = "injected worker failure"
     seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class Viewers:
+    """How many clients watch the frames (WebSocket, MJPEG): with none the worker computes
+    :data:`~cfsr_live.service.frame_worker.UNWATCHED_FPS` frames a second (enough for
+    ``/readyz`` and ``/metrics``) instead of ``max_fps``."""
+
+    count: int
 
 
 @dataclass(frozen=True)

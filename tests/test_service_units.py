@@ -116,13 +116,13 @@ def test_frame_message_names_its_layout_once():
         assert len(doc["heat_lut"]) == 256 * 3
         # every offset the viewer is given reads the field the encoder packed there
         packed = WS_HEADER.unpack_from(msg)
-        codes = ("4s", "H", "H", "q", "I", "H", "H", "B", "B", "f", "f", "f",
+        codes = ("4s", "H", "H", "q", "I", "H", "H", "B", "B", "B", "f", "f", "f",
                  f"{METHOD_NAME_BYTES}s")
         names = sorted(off, key=off.get)
         assert len(names) == len(codes) == len(packed)
         for name, code, value in zip(names, codes, packed, strict=True):
             assert struct.unpack_from("<" + code, msg, off[name])[0] == value, name
-        assert (packed[0], packed[2], packed[9], packed[10]) == (b"CFSR", 64, 0.5, 1.5)
+        assert (packed[0], packed[2], packed[10], packed[11]) == (b"CFSR", 64, 0.5, 1.5)
     finally:
         slot.close()
 
@@ -295,3 +295,72 @@ def test_web_process_does_not_load_the_worker():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_late_is_judged_against_the_measured_pace():
+    """A frame is late after twice what a frame takes through the pool at the rate it holds,
+    never under a second: on a slow machine frames computed at its pace are shown."""
+    from cfsr_live.service.pacing import LATE_S, late_after_s
+
+    assert late_after_s(None, 2, 30.0) == LATE_S  # nothing measured yet
+    assert late_after_s(20.0, 2, 30.0) == LATE_S  # a fast pipeline keeps the floor
+    # 800 ms a frame on 2 processes: one every 0.4 s, so 2 x (0.8 + 0.4) s
+    assert late_after_s(800.0, 2, 30.0) == pytest.approx(2.4)
+
+
+def test_frame_priority_lowers_only_once_every_kernel_is_cached():
+    """Pool processes compute frames below acquisition, but only once nothing can make them
+    compile (a nice value raised cannot be lowered again)."""
+    from cfsr_live.service.priority import FRAME_NICE, FramePriority
+
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"],
+                            stdin=subprocess.PIPE)
+    try:
+        cached = [False]
+        prio = FramePriority(cached=lambda: cached[0], check_s=0.0)
+        assert not prio.lower([proc.pid])
+        assert os.getpriority(os.PRIO_PROCESS, proc.pid) == os.getpriority(os.PRIO_PROCESS, 0)
+        cached[0] = True
+        assert prio.lower([proc.pid])
+        assert FramePriority.lowest([proc.pid]) == max(FRAME_NICE, os.nice(0))
+    finally:
+        proc.communicate(b"")
+
+
+def test_hub_rate_reads_a_slow_stream_and_tells_the_viewer_count(monkeypatch):
+    """The output rate is the rate delivered, at one frame a second too (it read 0 with
+    fewer than 2 frames in 2 s); the hub tells who watches as clients come and go."""
+    told: list[int] = []
+    slot, _, _ = _slot_with_frame()
+    try:
+        hub = FrameHub(slot, on_viewers=told.append)
+        now = 1000.0
+        monkeypatch.setattr("cfsr_live.service.hub.time.monotonic", lambda: now)
+        hub._times.extend([now - 3.0, now - 2.0, now - 1.0, now])  # one frame a second
+        assert hub.fps() == pytest.approx(1.0)
+        hub._times.clear()
+        hub._times.extend(now - 1.0 + i / 8 for i in range(9))  # 8 fps, the last one now
+        assert hub.fps() == pytest.approx(8.0)
+        c = hub.add(ClientQueue("ws"))
+        hub.remove(c)
+        assert told == [0, 1, 0]
+    finally:
+        slot.close()
+
+
+def test_frame_names_the_tier_that_made_it():
+    """The tier travels with the frame (slot, WebSocket header at the schema's offset), so the
+    viewer, the snapshot and the status name the tier of the frame shown, not the mode."""
+    from cfsr_live.service.schema import QUALITY_TIERS, WS_OFFSETS
+
+    slot, img, _ = _slot_with_frame()
+    try:
+        assert slot.read().quality == ""  # a method without tiers
+        slot.publish(step=9, image=img, masks={}, method="cfsr", gain=0.5, t_arrival=0.0,
+                     compute_ms=1.0, latency_ms=1.0, quality="fast")
+        f = slot.read()
+        msg = encode_ws_message(f, slot.mask_names)
+        assert f.quality == "fast" and QUALITY_TIERS[msg[WS_OFFSETS["quality"]]] == "fast"
+        assert decode_ws_message(msg, slot.mask_names)["quality"] == "fast"
+    finally:
+        slot.close()

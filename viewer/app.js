@@ -106,13 +106,14 @@
     const flags = dv.getUint8(O.mask_flags);
     const gain = dv.getFloat32(O.gain, true);
     const computeMs = dv.getFloat32(O.compute_ms, true), latencyMs = dv.getFloat32(O.latency_ms, true);
+    const quality = SCHEMA.quality_tiers[dv.getUint8(O.quality)] || "";
     let name = "";
     for (let i = O.method; i < O.method + SCHEMA.method_name_bytes; i++) { const c = dv.getUint8(i); if (!c) break; name += String.fromCharCode(c); }
     const n = w * h, nb = (n + 7) >> 3;
     const image = new Uint8Array(buf, hlen, n);
     const masks = {};
     MASKS.forEach((m, k) => { if (flags & (1 << k)) masks[m.name] = new Uint8Array(buf, hlen + n + k * nb, nb); });
-    return { step, frameNo, w, h, gain, computeMs, latencyMs, method: name, image, masks };
+    return { step, frameNo, w, h, gain, computeMs, latencyMs, method: name, quality, image, masks };
   }
 
   const bit = (plane, p) => (plane[p >> 3] >> (p & 7)) & 1;
@@ -539,20 +540,30 @@
         + (paused ? (d < 0 ? " (this method looks further ahead: pin it first to compare on one step)" : "")
           : " (pause the replay to compare on one step)");
   }
-  // On a paused replay a method that looks further ahead of t than the pinned one outputs an
-  // earlier step from the same data: deliver the difference, and it reaches the pinned step.
+  // On a paused replay each method outputs a step its own look-ahead before the same data end,
+  // so the live frame may be earlier or later than the pinned one. Earlier: deliver the
+  // difference. Later: seek back by the difference and a lead that refills the method's
+  // window, then deliver the lead, so the data ends where the pinned step needs it.
   let aligning = 0;
   async function alignCompare(f) {
     const p = state.pinned, r = replayState();
-    if (!p || !r || r.playing || f.method === p.frame.method || f.step >= p.frame.step) return;
-    if (aligning || p.aligned >= 3) return;
+    const d = f.step - (p ? p.frame.step : f.step);
+    if (!p || !r || r.playing || d === 0 || aligning || p.aligned >= 3) return;
     aligning = 1; p.aligned = (p.aligned || 0) + 1;
-    try { await replay("POST", "/api/replay/step", { n: p.frame.step - f.step }); } finally { aligning = 0; }
+    try {
+      if (d < 0) {
+        noteReplay(await replay("POST", "/api/replay/step", { n: -d }));
+      } else {
+        const lead = Math.min(16 * STEP_FRAMES, Math.max(0, r.position - d - r.start));
+        noteReplay(await replay("POST", "/api/replay/seek", { position: r.position - d - lead }));
+        if (lead) noteReplay(await replay("POST", "/api/replay/step", { n: lead }));
+      }
+    } finally { aligning = 0; }
   }
   async function startCompare() {
     const r = state.lastStatus && state.lastStatus.source && state.lastStatus.source.replay;
     // a replay is paused first, so both sides show the same step
-    if (r && r.playing) { await replay("PUT", "/api/replay", { playing: false }); await nextFrame(); }
+    if (r && r.playing) { noteReplay(await replay("PUT", "/api/replay", { playing: false })); await nextFrame(); }
     if (!latest) await nextFrame();
     const f = latest;
     state.pinned = { frame: f, params: state.config ? state.config.params : {}, redraw: true };
@@ -610,7 +621,9 @@
   async function snapshot() {
     const f = latest;
     if (!f) return null;
-    const params = state.config && state.config.method === f.method ? state.config.params : {};
+    // the parameters that made this frame: its own tier, not the live mode ("auto")
+    const chosen = state.config && state.config.method === f.method ? state.config.params : {};
+    const params = f.quality ? Object.assign({}, chosen, { quality: f.quality }) : chosen;
     const fields = {
       Software: "CFSR live viewer", method: f.method, step: String(f.step),
       parameters: JSON.stringify(params), masks: Object.keys(f.masks).join(","),
@@ -673,6 +686,11 @@
     catch (e) { msg($("replay-msg"), e.message, true); return null; }
   }
   const replayState = () => state.lastStatus && state.lastStatus.source && state.lastStatus.source.replay;
+  // the replay's state as an answer just gave it (the status poll lags up to a second: a
+  // replay just paused must not read as playing)
+  function noteReplay(st) {
+    if (st && state.lastStatus && state.lastStatus.source) state.lastStatus.source.replay = st;
+  }
   function stepBack() {
     const r = replayState();
     if (r) replay("POST", "/api/replay/seek", { position: Math.max(r.start, r.position - 2 * STEP_FRAMES) })
@@ -773,10 +791,14 @@
     }
     return t + ", restarts " + w.restarts;
   }
-  function qualityText(q) {
+  // the mode, the tier that made the frame on screen (the frame's own header, else the
+  // status's), and the shares of the last 10 s under this config
+  function qualityText(q, f) {
     const full = q.full || 0, fast = q.fast || 0, n = full + fast;
-    const share = n ? Math.round(100 * full / n) + " % full, " + Math.round(100 * fast / n) + " % fast" : "no frames yet";
-    return (q.mode || "-") + (q.mode === "auto" || n ? " (" + share + ")" : "");
+    const tier = (f && f.quality) || q.shown;
+    const share = n ? Math.round(100 * full / n) + " % full, " + Math.round(100 * fast / n) + " % fast in 10 s" : "no frames yet";
+    return (q.mode || "-") + (q.mode === "auto" && tier ? ": " + tier : "")
+      + (q.mode === "auto" || n ? " (" + share + ")" : "");
   }
   // while a method compiles the service shows the ladder (TFP, then CSR for CFSR): say which
   // rung is shown and what the chosen method's first frame waits on, kernel by kernel
@@ -824,7 +846,7 @@
       $("fig-worker").textContent = workerText(w);
       const hasQ = w.quality && w.quality.mode;
       $("fig-quality-box").classList.toggle("hidden", !hasQ);
-      if (hasQ) $("fig-quality").textContent = qualityText(w.quality);
+      if (hasQ) $("fig-quality").textContent = qualityText(w.quality, latest && latest.method === s.method ? latest : null);
       const note = compileNote(s);
       $("compile-note").textContent = note;
       $("compile-note").classList.toggle("hidden", !note);
