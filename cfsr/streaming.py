@@ -41,8 +41,8 @@ class StreamingReconstructor:
         still needed (steps).
     defects : DefectCorrector, optional
         Hot/dead pixel correction (:class:`cfsr.defects.DefectCorrector`): it learns its map
-        from every pushed block and corrects the block's frames as they enter the buffer, so
-        every method reads corrected spikes. None (default): the spikes as pushed.
+        from every pushed block and corrects a buffered step in place when it is first read,
+        so every method reads corrected spikes. None (default): the spikes as pushed.
 
     Notes
     -----
@@ -180,8 +180,8 @@ class StreamingReconstructor:
             self._first = start
         n = len(packed)
         _write_mirrored(buf, cap, packed, start)
-        if self.defects is not None:  # before any method reads them
-            self.defects.apply_mirrored(buf, cap, packed, start)
+        if self.defects is not None:
+            self.defects.arrived(packed, start)
         self._next = start + n
         self._count = min(cap, self._count + n)
         self._first = self._next - self._count
@@ -194,6 +194,8 @@ class StreamingReconstructor:
         cap = self._capacity
         i = a % cap
         assert self._buf is not None
+        if self.defects is not None:  # before any method reads them
+            self.defects.before_read(self._buf, cap, a, b)
         return self._buf[i : i + (b - a)]
 
     def can_compute(self, t: int, *, final: bool = False) -> bool:

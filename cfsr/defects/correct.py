@@ -7,10 +7,11 @@ intervals, so TFI, TFP, TFA, TFSTP, SNM, CSR and CFSR gain alike; the copy is do
 packed words (:func:`correct_packed`), one bit per defect per step, so it costs next to
 nothing beside a reconstruction.
 
-Two places run it, both through :func:`correct_packed`: :class:`DefectCorrector` on the blocks
-pushed into a :class:`~cfsr.streaming.StreamingReconstructor` (the live path: it learns the
-map online as it goes) and :class:`CorrectedRecording` on the windows read from a recording
-(the offline path, with the map from the sidecar or from a first pass over the file).
+Two places run it, both through :func:`_copy_bits`: :class:`DefectCorrector` in the buffer of
+a :class:`~cfsr.streaming.StreamingReconstructor` (the live path: it learns the map online
+from every pushed block and corrects a step when a method first reads it) and
+:class:`CorrectedRecording` on the windows read from a recording (the offline path, with the
+map from the sidecar or from a first pass over the file).
 """
 
 from __future__ import annotations
@@ -133,6 +134,7 @@ class DefectCorrector:
             self.learn = self.defect_map is None
         self.estimator = DefectEstimator(self.layout, self.params) if self.learn else None
         self.plan = plan_donors(self.map, self.layout)
+        self._fixed = (0, 0)  # steps [lo, hi) corrected in the ring (see before_read)
 
     @property
     def map(self) -> DefectMap:
@@ -155,19 +157,35 @@ class DefectCorrector:
         self.learn_from(packed, start)
         return correct_packed(packed, self.plan) if self.enabled else packed
 
-    def apply_mirrored(self, buf: np.ndarray, cap: int, packed: np.ndarray, start: int) -> None:
-        """Learn from ``packed`` and correct, in place, its frames just written to the mirrored
-        ring ``buf`` of ``cap`` frames (step s at rows ``s % cap`` and ``s % cap + cap``; see
-        :class:`~cfsr.streaming.StreamingReconstructor`): no copy of the block is made."""
+    # -- the mirrored ring of a StreamingReconstructor: steps are corrected when first read --
+    def arrived(self, packed: np.ndarray, start: int) -> None:
+        """Frames ``packed`` (steps ``start``..) entered the ring: learn from them; they are
+        corrected only when read (:meth:`before_read`), so steps nobody reads cost nothing."""
         self.learn_from(packed, start)
-        if not (self.enabled and self.plan.targets.size):
+        if start < self._fixed[1]:  # the stream started again: nothing is corrected
+            self._fixed = (start, start)
+
+    def before_read(self, buf: np.ndarray, cap: int, a: int, b: int) -> None:
+        """Correct, in place, the steps of ``[a, b)`` not corrected yet in the mirrored ring
+        ``buf`` of ``cap`` frames (step s at rows ``s % cap`` and ``s % cap + cap``)."""
+        if not (self.enabled and self.plan.targets.size) or a >= b:
             return
-        n = len(packed)
-        i0 = start % cap
+        lo, hi = self._fixed
+        if b < lo or a > hi:  # apart from what is corrected: start a new corrected span
+            todo, self._fixed = [(a, b)], (a, b)
+        else:
+            todo = [(a, min(b, lo)), (max(a, hi), b)]
+            self._fixed = (min(a, lo), max(b, hi))
+        for x, y in todo:
+            for s in range(x, y, cap):  # at most cap steps at a time: one pass over the ring
+                self._fix_rows(buf, cap, s, min(y, s + cap))
+
+    def _fix_rows(self, buf: np.ndarray, cap: int, a: int, b: int) -> None:
+        i0, n = a % cap, b - a
         k = min(n, cap - i0)
-        for a, b in ((i0, i0 + k), (i0 + cap, i0 + cap + k), (0, n - k), (cap, cap + n - k)):
-            if b > a:
-                _copy_bits(buf[a:b], self.plan.targets, self.plan.donors)
+        for x, y in ((i0, i0 + k), (i0 + cap, i0 + cap + k), (0, n - k), (cap, cap + n - k)):
+            if y > x:
+                _copy_bits(buf[x:y], self.plan.targets, self.plan.donors)
 
     def state(self) -> dict[str, Any]:
         """What a status shows: ``state`` (off / learning / ready / given), the counts of hot

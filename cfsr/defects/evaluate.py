@@ -61,9 +61,10 @@ def correction_cost(rec: CorrectedRecording, window: int, *, reps: int = 20) -> 
 
     ``ms_per_frame``: one frame's window of ``window`` steps read through the correction
     (copy included, as the offline path reads it). ``live_us_per_step``: the live path once its
-    map is ready, per streamed step: counting and correcting in place
-    (:meth:`DefectCorrector.apply_mirrored`) plus a map rebuild shared out over the steps
-    between two rebuilds. ``rebuild_ms``: one rebuild (classification and donors).
+    map is ready, per streamed step when every step is read: counting
+    (:meth:`DefectCorrector.arrived`), correcting both copies in the ring
+    (:meth:`DefectCorrector.before_read`) and a map rebuild shared out over the steps between
+    two rebuilds. ``rebuild_ms``: one rebuild (classification and donors).
     """
     assert rec.plan is not None and rec.defect_map is not None
     raw = rec.packed_frames[:window]
@@ -80,7 +81,8 @@ def correction_cost(rec: CorrectedRecording, window: int, *, reps: int = 20) -> 
     buf = np.array(rec.packed_frames[:n])
     t0 = time.perf_counter()
     for k in range(reps):
-        live.apply_mirrored(buf, half, buf[:half], warm + k * half)
+        live.arrived(buf[:half], warm + k * half)
+        live.before_read(buf, half, warm + k * half, warm + (k + 1) * half)
     steady_us = 1e6 * (time.perf_counter() - t0) / (reps * half)
     est = live.estimator
     assert est is not None
