@@ -510,3 +510,13 @@ def test_pm_offsets_near_then_far_and_the_window_reaches_the_last():
     far = {**base, "pm_count": 15, "pm_far_count": 2, "pm_far_step": 9}
     # the frame's window reads the last target's TFI: 48 + max_isi steps on each side
     assert m.window(far)[1] == m.window(base)[1] == 48 + base["max_isi"]
+
+
+def test_the_methods_package_is_callable_and_its_modules_import_by_path():
+    """``cfsr.methods()`` describes the methods and ``cfsr.methods`` stays the package: a
+    function bound over it made ``import cfsr.methods.<module> as m`` fail."""
+    import cfsr
+    import cfsr.methods.cfsr.params as params
+
+    assert list(cfsr.methods()) == list(cfsr.methods.methods())
+    assert "phi0" in params.FINE_PARAMS and "phi0" in cfsr.methods()["cfsr"]["params"]

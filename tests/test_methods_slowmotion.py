@@ -1,4 +1,5 @@
-"""Windows as long as the motion allows (cfsr.methods.cfsr.slow_motion) and CFSR's use of them."""
+"""Windows as long as the motion allows (cfsr.methods.cfsr.slow_motion_windows) and CFSR's use
+of them."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 
 import cfsr
 from cfsr._words import PackedWindow
-from cfsr.methods.cfsr.slow_motion import (
+from cfsr.methods.cfsr.slow_motion_windows import (
     HALVES,
     SLOW_PARAMS,
     SlowSettings,

@@ -1,5 +1,6 @@
-"""CFSR's compiled scans (numba, cached): the private sibling of :mod:`cfsr.methods.cfsr.pipeline`,
-which orchestrates them (argument groups as NamedTuples, buffers, the second pass's need).
+"""CFSR's compiled whole-frame scans (numba, cached): the private sibling of
+:mod:`cfsr.methods.cfsr.history`, which orchestrates them (argument groups as NamedTuples,
+buffers, the second pass's need).
 
 Every per-pixel quantity of the pipeline is a function of the pixel's spike times: the scans
 here read the packed window once per pixel as spike words (:mod:`cfsr._words`) and compute the
@@ -24,11 +25,10 @@ from cfsr._words import (
     next_spike,
     prefix_counts,
     prev_spike,
-    range_times,
     row_or_stored,
     row_words,
 )
-from cfsr.methods.cfsr.daisi import daisi_from_times
+from cfsr.methods.cfsr.daisi import daisi_words
 from cfsr.methods.cfsr.distinction import distinct_in_words, long_isi_buffer
 from cfsr.methods.tfp import span_rate
 
@@ -43,39 +43,12 @@ from cfsr.methods.tfp import span_rate
 # checks equality):
 #
 # * :func:`static_kernel` (whole frame): proves pixels static in every history frame (one
-#   walk of their spikes), the TFP counts of the history and at t, DAISI at t -- all that a
-#   static window needs;
+#   walk of their spikes), the TFP counts of the history and at t, DAISI at t (its words rule,
+#   :func:`cfsr.methods.cfsr.daisi.daisi_words`) -- all that a static window needs;
 # * :func:`dynamic_kernel` (whole frame, only when some pixel is not proven static): TFI at
 #   the K history steps and the coarse masks of the unproven pixels;
 # * :mod:`cfsr.methods.cfsr.patchmatch_frames` (only the tiles PatchMatch can read): TFI and TFA at
 #   the PatchMatch steps.
-
-
-@njit(helper=True)
-def daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no cover - numba
-    """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
-    ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``."""
-    a_lo = c - dspan
-    a_hi = c + dspan
-    nl = 0
-    p1 = prev_spike(words, r, lo, a_lo - 2, d_lo)
-    if p1 >= 0:
-        p2 = prev_spike(words, r, lo, p1 - 1, d_lo)
-        if p2 >= 0:
-            loc[nl] = p2
-            nl += 1
-        loc[nl] = p1
-        nl += 1
-    nl += range_times(words, r, lo, max(d_lo, a_lo - 1), min(d_hi, a_hi + 1), loc[nl:])
-    n1 = next_spike(words, r, lo, a_hi + 1, d_hi)
-    if n1 >= 0:
-        loc[nl] = n1
-        nl += 1
-        n2 = next_spike(words, r, lo, n1 + 1, d_hi)
-        if n2 >= 0:
-            loc[nl] = n2
-            nl += 1
-    return daisi_from_times(loc[:nl], a_lo, a_hi, logs)
 
 
 class HistUnion(NamedTuple):

@@ -28,9 +28,10 @@ import math
 import numpy as np
 
 from cfsr._jit import njit
+from cfsr._words import next_spike, prev_spike, range_times
 from cfsr.methods._spiketimes import pixel_times, row_slab
 
-__all__ = ["daisi_strength", "daisi_edges", "daisi_from_times", "log_table"]
+__all__ = ["daisi_strength", "daisi_edges", "daisi_from_times", "daisi_words", "log_table"]
 
 
 @njit
@@ -78,6 +79,35 @@ def daisi_from_times(tv, a_lo, a_hi, logs):  # pragma: no cover - numba
                 if d > best:
                     best = d
     return best
+
+
+@njit(helper=True)
+def daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no cover - numba
+    """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
+    ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``, read
+    from spike words (:mod:`cfsr._words`): CFSR's history scan computes DAISI at t this way in
+    the same walk of every pixel's spikes (:mod:`cfsr.methods.cfsr._history_kernels`)."""
+    a_lo = c - dspan
+    a_hi = c + dspan
+    nl = 0
+    p1 = prev_spike(words, r, lo, a_lo - 2, d_lo)
+    if p1 >= 0:
+        p2 = prev_spike(words, r, lo, p1 - 1, d_lo)
+        if p2 >= 0:
+            loc[nl] = p2
+            nl += 1
+        loc[nl] = p1
+        nl += 1
+    nl += range_times(words, r, lo, max(d_lo, a_lo - 1), min(d_hi, a_hi + 1), loc[nl:])
+    n1 = next_spike(words, r, lo, a_hi + 1, d_hi)
+    if n1 >= 0:
+        loc[nl] = n1
+        nl += 1
+        n2 = next_spike(words, r, lo, n1 + 1, d_hi)
+        if n2 >= 0:
+            loc[nl] = n2
+            nl += 1
+    return daisi_from_times(loc[:nl], a_lo, a_hi, logs)
 
 
 @njit

@@ -14,7 +14,7 @@ from cfsr.methods.cfsr.coarse import (
     CSR_PARAMS,
     CSR_PRESETS,
 )
-from cfsr.methods.cfsr.slow_motion import SLOW_PARAMS
+from cfsr.methods.cfsr.slow_motion_windows import SLOW_PARAMS
 from cfsr.methods.registry import MAX_WINDOW_STEPS, Param, Params, choices_of
 from cfsr.methods.tfp import STATIC_ESTIMATORS
 
@@ -241,7 +241,7 @@ FINE_PARAMS: dict[str, Param] = {
         "length of each span the static gate compares",
         maximum=MAX_WINDOW_STEPS // 4,
     ),
-    # windows as long as the motion allows, per pixel (cfsr.methods.cfsr.slow_motion)
+    # windows as long as the motion allows, per pixel (cfsr.methods.cfsr.slow_motion_windows)
     **SLOW_PARAMS,
 }
 

@@ -90,7 +90,7 @@ from cfsr.methods.cfsr.history import History, history_scan
 from cfsr.methods.cfsr.mog_two_sided import SharpRate
 from cfsr.methods.cfsr.params import FINE_PARAMS, FINE_PRESETS
 from cfsr.methods.cfsr.settings import CfsrSettings
-from cfsr.methods.cfsr.slow_motion import slow_fuse, slow_reach
+from cfsr.methods.cfsr.slow_motion_windows import slow_fuse, slow_reach
 from cfsr.methods.cfsr.static_gate import gated_rate, static_gate, tile_gates
 from cfsr.methods.registry import Memo, Method, Output, register
 from cfsr.methods.tfp import TfpMode, tfp_extent, tfp_span

@@ -9,7 +9,7 @@ from functools import cached_property
 
 from cfsr.methods.cfsr.coarse import CoarseSettings, CsrSettings, DynamicEstimator, tfi_dynamic
 from cfsr.methods.cfsr.params import MogSides, Quality
-from cfsr.methods.cfsr.slow_motion import SlowSettings
+from cfsr.methods.cfsr.slow_motion_windows import SlowSettings
 from cfsr.methods.cfsr.tiers import effective_params
 from cfsr.methods.registry import MethodSettings, Params
 from cfsr.methods.tfp import RateRule
@@ -22,8 +22,8 @@ class CfsrSettings(CoarseSettings, SlowSettings):
     """CFSR's parameters as one frame runs with them (its ``quality`` tier applied,
     :func:`effective_params`): the coarse stage's
     (:class:`~cfsr.methods.cfsr.coarse.CoarseSettings`), the slow-motion stage's
-    (:class:`~cfsr.methods.cfsr.slow_motion.SlowSettings`) and the fine stage's below. Meaning, unit
-    and range of each: :data:`FINE_PARAMS`, :data:`CSR_PARAMS`.
+    (:class:`~cfsr.methods.cfsr.slow_motion_windows.SlowSettings`) and the fine stage's below.
+    Meaning, unit and range of each: :data:`FINE_PARAMS`, :data:`CSR_PARAMS`.
     """
 
     mog_frames: int  #: CSR history frames K, ending at t
