@@ -6,6 +6,7 @@ by hand: rerun the benchmark, then this script).
     ./tasks bench --sweep --out docs/bench          # sweep.json
     ./tasks bench --tiers --out docs/bench          # tiers.json
     ./tasks bench --compile --out docs/bench        # compile.json
+    ./tasks bench --defects --out docs/bench        # defects.json
     python scripts/results.py                       # docs/results.md, docs/bench/*.png,
                                                     # cfsr/_compile_table.json
     python scripts/results.py --check               # exit 1 if docs/results.md is stale
@@ -343,6 +344,64 @@ def compile_section(co: dict[str, Any]) -> list[str]:
     return out
 
 
+def _defect_psnr(rows: list[dict[str, Any]], scene: str, method: str) -> str:
+    """One table row: a method's whole-frame PSNR on each sensor of a scene, and the change
+    against the clean sensor."""
+    cell = {r["sensor"]: r.get("psnr_all") for r in rows
+            if r["scene"] == scene and r["method"] == method}
+    clean = cell.get("clean")
+
+    def vs(key: str) -> str:
+        v = cell.get(key)
+        return (f"{_f(v, '.2f')} ({_f(v - clean, '+.2f')})" if _ok(v) and _ok(clean)
+                else _f(v, ".2f"))
+
+    keys = ("defective", "defective+corrected", "hot+dead", "hot+dead+corrected",
+            "clean+corrected")
+    return f"| {scene} | {method} | {_f(clean, '.2f')} | " + " | ".join(map(vs, keys)) + " |"
+
+
+def defects_section(de: dict[str, Any]) -> list[str]:
+    rows = de["rows"]
+    out = _table_head(
+        "Sensor defects",
+        "`cfsr bench --defects`: the same content on a clean sensor and on a defective one "
+        f"(`{de['noise']}` noise: hot and dead pixels and a threshold spread; `hot+dead`: the "
+        "same without the spread), read as recorded and through the defect correction with "
+        f"the map found in the first {de['map_steps']:,} steps. Whole-frame PSNR (dB) at "
+        f"steps {', '.join(map(str, de['times']))}, the change against the clean sensor in "
+        "brackets; `clean+corrected` is the clean sensor through the correction.",
+        ("scene", "method", "clean", "defective", "corrected", "hot+dead", "corrected",
+         "clean+corrected"))
+    for scene in _distinct(rows, "scene"):
+        for m in _order([r["method"] for r in rows if r["scene"] == scene]):
+            out.append(_defect_psnr(rows, scene, m))
+    out += ["", "The map against the simulator's true one (hot / dead pixels), as it grows:",
+            "", "| scene | steps | hot precision | hot recall | dead precision | dead recall "
+            "| flagged on the clean sensor |", "|---|---|---|---|---|---|---|"]
+    for scene, m in de["maps"].items():
+        for c in m["over_time"]:
+            out.append(f"| {scene} ({m['true_hot']} hot, {m['true_dead']} dead) | "
+                       f"{c['steps']:,} | {_f(c['hot_precision'], '.3f')} | "
+                       f"{_f(c['hot_recall'], '.3f')} | {_f(c['dead_precision'], '.3f')} | "
+                       f"{_f(c['dead_recall'], '.3f')} | {m['clean_flags']} |")
+    cost = {k: v for k, v in de["cost"].items() if isinstance(v, dict)}
+    out += ["", f"What correcting costs ({de['cost'].get('defects', '-')} flagged pixels, "
+            "wall time in the same run): reading one frame's window through the correction "
+            "beside the method's own time per frame, and the live path per streamed step "
+            "(counting and correcting in place, map rebuilds shared out).", "",
+            "| method | window (steps) | correction ms per frame | method ms per frame | "
+            "share | live µs per step |", "|---|---|---|---|---|---|"]
+    for m in _order(list(cost)):
+        c = cost[m]
+        out.append(f"| {m} | {c['window_steps']} | {_f(c['ms_per_frame'], '.3f')} | "
+                   f"{_f(c['method_ms_per_frame'], '.1f')} | "
+                   f"{_f(100 * c['fraction'] if _ok(c.get('fraction')) else None, '.1f')} % | "
+                   f"{_f(c['live_us_per_step'], '.2f')} |")
+    out.append("")
+    return out
+
+
 def compile_table(co: dict[str, Any]) -> str:
     """The package's measured table: per method, the kernels it compiles alone and their
     CPU seconds (median), for the progress bars' 'n of N' and estimate."""
@@ -381,6 +440,10 @@ def render(folder: Path = BENCH) -> str:
     if co:
         out += compile_section(co)
         out += [f"Machine: {_machine(co)}.", ""]
+    de = _load("defects.json", folder)
+    if de:
+        out += defects_section(de)
+        out += [f"Machine: {_machine(de)}.", ""]
     return "\n".join(out).rstrip() + "\n"
 
 

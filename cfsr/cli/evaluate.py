@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=400, help="frame width in pixels (400)")
     p.add_argument(
         "--noise",
-        help="simulator noise: none, spcs, shot, sensor, or NAME=VALUE,... (default: each "
+        help="simulator noise: none, spcs, shot, sensor, defects, or NAME=VALUE,... (default: each "
         "scene's own: sensor for 'noisy', none otherwise)",
     )
     p.add_argument(

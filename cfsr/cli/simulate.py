@@ -65,10 +65,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--noise",
-        help="sensor noise: a preset (none, spcs, shot, sensor) and/or NAME=VALUE items, e.g. "
-        "'spcs' or 'spcs,electrons_per_spike=100' or 'dark_rate=0.002' "
+        help="sensor noise: a preset (none, spcs, shot, sensor, defects) and/or NAME=VALUE "
+        "items, e.g. 'spcs' or 'spcs,electrons_per_spike=100' or 'dark_rate=0.002' "
         "(threshold_sd, gain_sd, dark_rate, dark_sd, electrons_per_spike, hot_fraction, "
-        "hot_rate); default: the scene's own (sensor for 'noisy', none otherwise)",
+        "hot_rate, dead_fraction); default: the scene's own (sensor for 'noisy', none "
+        "otherwise)",
     )
     p.add_argument("--start", type=count_type(0, MAX_FRAMES, "steps"), default=0,
                    help=f"scene step of the first frame, 0..{MAX_FRAMES} (default 0)")
