@@ -79,8 +79,38 @@ def test_plot_colours_are_fixed_per_method(tmp_path):
         assert (np.abs(rgb.astype(int) - want).sum(axis=2) < 6).any(), path
 
 
+@pytest.fixture
+def few_timings(monkeypatch):
+    """Every timing of the benchmark at its least: one warm-up and three timed calls (what a
+    figure is made of; how long each runs is the benchmark's own concern, not the suite's)."""
+    import cfsr.bench
+
+    timed = cfsr.bench.time_call
+    monkeypatch.setattr(cfsr.bench, "time_call",
+                        lambda fn, **_: timed(fn, min_time=0.0, max_reps=3))
+
+
+@pytest.fixture
+def smoke_sizes(monkeypatch, few_timings):
+    """``bench --quick`` at the least that still runs every part: timings of 3 calls each,
+    2 pool frames per split, 1.5 s of acquisition (its runs: 0.5 s each at the least), live
+    runs of 3 s, 2 CFSR dense frames. The figures mean nothing at these sizes (the
+    benchmark itself keeps its own); the JSON's parts and shape are what is checked."""
+    from cfsr.cli import _throughput
+
+    monkeypatch.setattr(_throughput, "QUICK", _throughput.QUICK._replace(
+        min_time=0.0, pool_frames=2, acquisition_s=1.5, live_s=3.0, live_settle_s=0.5,
+        dense=(("tfstp", 1, 16), ("cfsr", 32, 2))))
+    # the live run's repeat beside CPU-bound processes, where the live layer has one: it
+    # measures a busy machine, which the suite's host already is
+    import cfsr_live.service.livebench as livebench
+
+    if hasattr(livebench, "BUSY_CONFIGS"):
+        monkeypatch.setattr(livebench, "BUSY_CONFIGS", ())
+
+
 @pytest.mark.slow
-def test_bench_quick_throughput_json(tmp_path):
+def test_bench_quick_throughput_json(tmp_path, smoke_sizes):
     path = tmp_path / "t.json"
     assert (
         main(
@@ -156,7 +186,7 @@ def test_bench_on_a_local_dask_cluster_gives_the_same_scores(tmp_path):
 
 
 @pytest.mark.slow
-def test_bench_quick_sweep(tmp_path, capsys):
+def test_bench_quick_sweep(tmp_path, capsys, few_timings):
     assert main(["bench", "--sweep", "--quick", "-q", "--out", str(tmp_path)]) == 0
     res = json.loads((tmp_path / "sweep.json").read_text())
     by: dict[str, list] = {}

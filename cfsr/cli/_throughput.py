@@ -4,7 +4,7 @@ time, measured in this run (ratios, never timing asserts)."""
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import Any, NamedTuple
 
 from cfsr.cli.bench import GOALS, _machine
 
@@ -33,7 +33,7 @@ def _acquisition(args: argparse.Namespace) -> dict[str, Any]:
         acquisition_throughput = eps[0].load()
     except ImportError as exc:  # reported, not hidden
         return {"error": f"acquisition benchmark unavailable ({exc}): {install_hint('live')}"}
-    return acquisition_throughput(seconds=2.0 if args.quick else 5.0)
+    return acquisition_throughput(seconds=_sizes(args).acquisition_s)
 
 
 def _live(args: argparse.Namespace, bar) -> dict[str, Any]:
@@ -50,10 +50,10 @@ def _live(args: argparse.Namespace, bar) -> dict[str, Any]:
         live_throughput = eps[0].load()
     except ImportError as exc:
         return {"error": f"live benchmark unavailable ({exc}): {install_hint('live')}"}
-    quick = {"configs": QUICK_LIVE} if args.quick else {}
-    return live_throughput(
-        seconds=6.0 if args.quick else 20.0, progress=lambda s: bar.set_description(s), **quick
-    )
+    sz = _sizes(args)
+    configs = {"configs": sz.live_configs} if sz.live_configs else {}
+    return live_throughput(seconds=sz.live_s, settle=sz.live_settle_s,
+                           progress=lambda s: bar.set_description(s), **configs)
 
 
 #: The live runs of a quick benchmark (method, CFSR tier, processes, threads each): CFSR's
@@ -77,6 +77,29 @@ POOL_SPLITS = ((1, 1), (1, 2), (2, 1))
 FORECAST_CORES = (4, 8, 16)
 
 
+class Sizes(NamedTuple):
+    """How much one throughput run measures: the demo's steps, the least seconds of each
+    timing, the pool's frames per split, the acquisition's and each live run's seconds (and
+    the live run's settling), the dense outputs, the live configurations (None: all)."""
+
+    steps: int
+    min_time: float
+    pool_frames: int
+    acquisition_s: float
+    live_s: float
+    live_settle_s: float
+    dense: tuple[tuple[str, int, int], ...]
+    live_configs: tuple[tuple[str, str, int, int], ...] | None
+
+
+FULL = Sizes(4096, 1.0, 24, 5.0, 20.0, 3.0, DENSE_OUTPUTS, None)
+QUICK = Sizes(2048, 0.3, 8, 2.0, 6.0, 3.0, DENSE_OUTPUTS, QUICK_LIVE)
+
+
+def _sizes(args: argparse.Namespace) -> Sizes:
+    return QUICK if args.quick else FULL
+
+
 def throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
     from cfsr.bench import (
         core_forecast,
@@ -89,13 +112,13 @@ def throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
     from cfsr.methods import methods
     from cfsr.pool import usable_cores
 
-    steps = 2048 if args.quick else 4096
+    sz = _sizes(args)
     bar.set_description("simulating")
-    packed, layout = _demo_packed(steps)
+    packed, layout = _demo_packed(sz.steps)
     cores = usable_cores()
     splits = [(w, t) for w, t in POOL_SPLITS if w * t <= cores]
     bar.reset(
-        total=3 + len(methods()) + len(SCALING_METHODS) + len(DENSE_OUTPUTS) + len(splits)
+        total=3 + len(methods()) + len(SCALING_METHODS) + len(sz.dense) + len(splits)
     )
     bar.set_description("streaming state")
     rtf = {"streaming_state": streaming_state_rtf(packed, layout)}
@@ -109,7 +132,7 @@ def throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
     for name in methods():
         bar.set_description(f"fps {name}")
         try:
-            r = method_fps(packed, layout, name, min_time=0.3 if args.quick else 1.0)
+            r = method_fps(packed, layout, name, min_time=sz.min_time)
         except ValueError as exc:
             detail[name] = {"error": str(exc)}
         else:
@@ -120,21 +143,21 @@ def throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
     for name in SCALING_METHODS:
         bar.set_description(f"threads {name}")
         scaling[name] = method_scaling(
-            packed, layout, name, threads=(1, 2), min_time=0.3 if args.quick else 1.0
+            packed, layout, name, threads=(1, 2), min_time=sz.min_time
         )
         bar.update()
     dense: dict[str, Any] = {}
-    for name, stride, count in DENSE_OUTPUTS:
+    for name, stride, count in sz.dense:
         bar.set_description(f"dense {name}")
         dense[name] = dense_output(
-            packed, layout, name, stride=stride, count=count, min_time=0.3 if args.quick else 1.0
+            packed, layout, name, stride=stride, count=count, min_time=sz.min_time
         )
         bar.update()
     pool: dict[str, Any] = {"method": "cfsr", "cores": cores, "splits": []}
     for w, t in splits:
         bar.set_description(f"pool cfsr {w}x{t}")
         pool["splits"].append(
-            pool_fps(packed, layout, "cfsr", workers=w, threads=t, frames=8 if args.quick else 24)
+            pool_fps(packed, layout, "cfsr", workers=w, threads=t, frames=sz.pool_frames)
         )
         bar.update()
     one = next((r for r in pool["splits"] if r["workers"] == r["threads"] == 1), None)
