@@ -262,3 +262,20 @@ def test_info_says_sidecar_only_when_there_is_one(tmp_path):
     dat = tmp_path / "q.dat"
     got = info()
     assert got["sidecar"] is True and got["sidecar_final"] is False
+
+
+def test_the_library_simulation_is_bounded_as_the_cli(tmp_path):
+    """``simulate_to_dat`` refuses what ``cfsr simulate`` refuses, by its argument names,
+    before a file exists (the library call started writing 12.5 TB, or tracebacked on a
+    74.5 GiB allocation, where the CLI said no)."""
+    from cfsr.simulate import simulate_to_dat
+
+    out = tmp_path / "x.dat"
+    for kw, name in (({"steps": 1_000_000_000}, "steps"),
+                     ({"steps": 200_000, "gt_every": 1}, "gt_every"),
+                     ({"steps": 10, "width": 100_000, "height": 100_000}, "width"),
+                     ({"steps": 10, "start": 10**21}, "start")):
+        with pytest.raises(ValueError, match=name):
+            simulate_to_dat("disk", path=out, **kw)
+        assert list(tmp_path.iterdir()) == [], kw
+    assert simulate_to_dat("disk", 20, out, gt_every=None, height=16, width=32) == out

@@ -112,44 +112,16 @@ def _scene_options(items: list[str]) -> dict[str, float | bool]:
     return out
 
 
-#: bytes of ground truth per pixel per stored frame: a float32 image and a bool mask
-_GT_BYTES_PER_PIXEL = 5
-
-
 def check_sizes(args: argparse.Namespace) -> None:
-    """Refuse, before anything is allocated or written, a simulation the machine cannot hold:
-    a frame over the format's pixels, a scene clock past :data:`~cfsr.datfile.MAX_FRAMES`, a
-    ``.dat`` larger than the free disk, ground truth over half the available memory.
-    ValueError (exit 2) naming the flag, the value and the limit."""
-    from cfsr.cli._common import available_memory, free_disk
-    from cfsr.datfile import MAX_FRAME_PIXELS, MAX_FRAMES
+    """Refuse, before anything is allocated or written, a simulation the machine cannot hold
+    (:func:`cfsr.simulate.check_dat_sizes`, which ``simulate_to_dat`` also applies), naming
+    the flag, the value and the limit (ValueError: exit 2)."""
+    from cfsr.simulate import check_dat_sizes
 
-    w, h, steps = args.width, args.height, args.steps
-    if w * h > MAX_FRAME_PIXELS:
-        raise ValueError(f"--width {w} x --height {h} = {w * h} pixels a frame, more than "
-                         f"the {MAX_FRAME_PIXELS} a .dat frame may hold")
-    if args.start + steps > MAX_FRAMES:
-        raise ValueError(f"--start {args.start} + --steps {steps} passes step {MAX_FRAMES}, the "
-                         "last a recording may reach")
-    frame_bytes = -(-h * w // 8)  # rows padded to whole bytes at most
-    need = steps * frame_bytes
-    free, folder = free_disk(args.out)
-    if need > free:
-        raise ValueError(f"--steps {steps}: {need / 1e9:.3g} GB of spikes at {w} x {h}, more "
-                         f"than the {free / 1e9:.3g} GB free in {folder}")
-    if args.gt_every:
-        n_gt = -(-steps // args.gt_every)
-        gt = n_gt * h * w * _GT_BYTES_PER_PIXEL
-        avail = available_memory()
-        if gt > avail // 2:
-            raise ValueError(
-                f"--gt-every {args.gt_every}: {n_gt} ground-truth frames need {gt / 1e9:.3g} GB "
-                f"of memory, more than half the {avail / 1e9:.3g} GB available; give a larger "
-                "--gt-every (or 0 for none)")
-        if need + gt > free:
-            raise ValueError(f"--steps {steps} with --gt-every {args.gt_every}: "
-                             f"{(need + gt) / 1e9:.3g} GB of spikes and ground truth, more than "
-                             f"the {free / 1e9:.3g} GB free in {folder}")
+    check_dat_sizes(args.steps, args.height, args.width, args.out, start=args.start,
+                    gt_every=args.gt_every,
+                    names={k: "--" + k.replace("_", "-")
+                           for k in ("steps", "height", "width", "start", "gt_every")})
 
 
 def run(args: argparse.Namespace) -> int:

@@ -27,6 +27,7 @@ from cfsr.simulate.sensor import DEFAULT_GAIN, DEFAULT_THRESHOLD, Sensor
 from cfsr.simulate.simulation import (
     GroundTruth,
     Simulation,
+    check_dat_sizes,
     gt_path,
     load_ground_truth,
     simulate,
@@ -46,6 +47,7 @@ __all__ = [
     "Sensor",
     "Simulation",
     "Slider",
+    "check_dat_sizes",
     "gt_path",
     "drift",
     "load_ground_truth",

@@ -171,6 +171,56 @@ def gt_path(dat_path: str | os.PathLike) -> Path:
     return p.with_name(stem + ".gt.npz")
 
 
+#: bytes of ground truth per pixel per stored frame: a float32 image and a bool mask
+GT_BYTES_PER_PIXEL = 5
+
+
+def check_dat_sizes(
+    steps: int,
+    height: int,
+    width: int,
+    path: str | os.PathLike,
+    *,
+    start: int = 0,
+    gt_every: int | None = None,
+    names: Mapping[str, str] | None = None,
+) -> None:
+    """Refuse, before anything is allocated or written, a simulation to ``path`` the machine
+    cannot hold: a frame over the format's pixels, a scene clock past
+    :data:`~cfsr.datfile.MAX_FRAMES`, a ``.dat`` larger than the free disk, ground truth over
+    half the available memory. ValueError naming the argument (``names`` maps an argument to
+    what the caller calls it, e.g. a command's flags), the value and the limit."""
+    from cfsr.cli._common import available_memory, free_disk
+    from cfsr.datfile import MAX_FRAME_PIXELS, MAX_FRAMES
+
+    n = {k: k for k in ("steps", "height", "width", "start", "gt_every")} | dict(names or {})
+    h, w = height, width
+    if w * h > MAX_FRAME_PIXELS:
+        raise ValueError(f"{n['width']} {w} x {n['height']} {h} = {w * h} pixels a frame, more "
+                         f"than the {MAX_FRAME_PIXELS} a .dat frame may hold")
+    if start + steps > MAX_FRAMES:
+        raise ValueError(f"{n['start']} {start} + {n['steps']} {steps} passes step {MAX_FRAMES},"
+                         " the last a recording may reach")
+    need = steps * -(-h * w // 8)  # rows padded to whole bytes at most
+    free, folder = free_disk(path)
+    if need > free:
+        raise ValueError(f"{n['steps']} {steps}: {need / 1e9:.3g} GB of spikes at {w} x {h}, "
+                         f"more than the {free / 1e9:.3g} GB free in {folder}")
+    if gt_every:
+        n_gt = -(-steps // gt_every)
+        gt = n_gt * h * w * GT_BYTES_PER_PIXEL
+        avail = available_memory()
+        if gt > avail // 2:
+            raise ValueError(
+                f"{n['gt_every']} {gt_every}: {n_gt} ground-truth frames need {gt / 1e9:.3g} GB "
+                f"of memory, more than half the {avail / 1e9:.3g} GB available; give a larger "
+                f"{n['gt_every']} (or 0 for none)")
+        if need + gt > free:
+            raise ValueError(f"{n['steps']} {steps} with {n['gt_every']} {gt_every}: "
+                             f"{(need + gt) / 1e9:.3g} GB of spikes and ground truth, more than "
+                             f"the {free / 1e9:.3g} GB free in {folder}")
+
+
 def simulate_to_dat(
     scene: str | Scene,
     steps: int,
@@ -212,6 +262,9 @@ def simulate_to_dat(
     if gt_every is not None and int(gt_every) < 0:
         raise ValueError(f"gt_every must be >= 0 steps, got {gt_every}")
     path = Path(path)
+    # bounded before the scene (its textures) or a byte of the file exists
+    shape = scene.shape if isinstance(scene, Scene) else (height, width)
+    check_dat_sizes(steps, *shape, path, start=start, gt_every=gt_every)
     sc = _as_scene(scene, height, width)
     sensor = Sensor(sc, seed=seed, gain=gain, threshold=threshold, noise=noise, start=start)
     h, w = sc.shape
