@@ -385,6 +385,16 @@ def defects_section(de: dict[str, Any]) -> list[str]:
                        f"{c['steps']:,} | {_f(c['hot_precision'], '.3f')} | "
                        f"{_f(c['hot_recall'], '.3f')} | {_f(c['dead_precision'], '.3f')} | "
                        f"{_f(c['dead_recall'], '.3f')} | {m['clean_flags']} |")
+    clean = de.get("clean_scenes", [])
+    if clean:
+        changed = [r for r in clean if r["flags"]]
+        out += ["", "Every simulated scene on an ideal sensor, through the correction: pixels "
+                "flagged " + ", ".join(f"{r['scene']} {r['flags']}" for r in clean) + ". "
+                + ("Where none is flagged the spikes, so every output, are unchanged bit for "
+                   "bit." if not changed else "Whole-frame PSNR change where some are: "
+                   + "; ".join(r["scene"] + " " + ", ".join(
+                       f"{k[:-6]} {v:+.2f} dB" for k, v in r.items() if k.endswith("_dpsnr"))
+                       for r in changed) + ".")]
     cost = {k: v for k, v in de["cost"].items() if isinstance(v, dict)}
     out += ["", f"What correcting costs ({de['cost'].get('defects', '-')} flagged pixels, "
             "wall time in the same run): reading one frame's window through the correction "

@@ -20,8 +20,13 @@ def defects_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
     methods = (split_method_specs(args.methods) if args.methods
                else list(QUICK_METHODS if args.quick else DEFECT_METHODS))
     scenes = [s.strip() for s in args.scenes.split(",")] if args.scenes else ["disk", "stars"]
+    from cfsr.defects.evaluate import clean_sensor_flags
+
     bar.set_description("defects")
-    return evaluate_defects(methods, scenes, steps=args.steps or 1200)
+    res = evaluate_defects(methods, scenes, steps=args.steps or 1200)
+    bar.set_description("clean scenes")
+    res["clean_scenes"] = clean_sensor_flags(methods, steps=args.steps or 1200)
+    return res
 
 
 def print_defects(res: dict[str, Any]) -> None:
@@ -40,6 +45,8 @@ def print_defects(res: dict[str, Any]) -> None:
             ("hot_recall", "hot recall", ".3f"), ("dead_precision", "dead precision", ".3f"),
             ("dead_recall", "dead recall", ".3f"),
         ]))
+    print("\nflagged on an ideal sensor: " + ", ".join(
+        f"{r['scene']} {r['flags']}" for r in res.get("clean_scenes", [])))
     cost = {k: v for k, v in res["cost"].items() if isinstance(v, dict)}
     print()
     print(format_rows([{"method": k, **v} for k, v in cost.items()], [

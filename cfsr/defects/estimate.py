@@ -69,8 +69,8 @@ class DefectParams:
 
     warmup: int = 2000
     min_steps: int = 256
-    hot_excess: float = 0.05
-    hot_relative: float = 0.2
+    hot_excess: float = 0.07
+    hot_relative: float = 0.15
     isolation: float = 0.03
     bump: float = 0.3
     dead_spikes: float = 12.0
