@@ -202,7 +202,7 @@ def fine_stage(
     masks = _mask_stage(src, center, coarse, s)
     # 5-6. PatchMatch on the fine region, ATSR
     ref = refine_stage(src, center, seed, coarse, masks, s, bank)
-    # 7. windows as long as the motion allows where the pixel moves slowly (slowmotion)
+    # 7. windows as long as the motion allows where the pixel moves slowly (slow_motion_windows)
     rate = slow_fuse(src, center, ref.rate, ref.used, s, slow_cand, coarse.noise)
     return rate, {"coarse": masks.coarse, "fine": masks.fine}
 
