@@ -44,9 +44,9 @@ class ChunkTask:
     #: the first group's cost) and threads in each
     workers: int | None = 1
     threads: int = 1
-    #: hot/dead pixel correction (:func:`cfsr.defects.with_defects`): "auto", "off" or a
-    #: calibration file
-    defects: str | None = "auto"
+    #: hot/dead pixel correction (:func:`cfsr.defects.with_defects`): "sidecar", "auto",
+    #: "off" or a calibration file
+    defects: str | None = "sidecar"
 
 
 def plan_chunks(times: Sequence[int], chunk_steps: int) -> list[tuple[int, ...]]:

@@ -49,18 +49,24 @@ def test_info_counts_saves_and_exports_the_map_and_a_replay_reads_it_back(dat, t
     assert "the sidecar's map" in out
 
 
-def test_reconstruct_corrects_by_default_and_off_keeps_the_spikes(dat, tmp_path):
+def test_reconstruct_corrects_with_the_sidecars_map_or_when_asked(dat, tmp_path):
     hot, dead = _truth(dat)
-    rates = {}
-    for opt in ("auto", "off"):
-        out = tmp_path / opt
-        assert main(["reconstruct", str(dat), "-m", "tfp", "-t", "2200", "-p", "window=160",
-                     "-o", str(out), "-q", "--defects", opt]) == 0
-        rates[opt] = np.load(out / "t2200.npy")
     bad = hot | dead
-    assert np.abs(rates["off"][bad] - 0.25).max() > 0.2
-    assert np.abs(rates["auto"][bad] - 0.25).max() < 0.03
-    assert np.array_equal(rates["auto"][~bad], rates["off"][~bad])
+
+    def rate(name, *opt):
+        out = tmp_path / name
+        assert main(["reconstruct", str(dat), "-m", "tfp", "-t", "2200", "-p", "window=160",
+                     "-o", str(out), "-q", *opt]) == 0
+        return np.load(out / "t2200.npy")
+
+    off, auto = rate("off", "--defects", "off"), rate("auto", "--defects", "auto")
+    assert np.abs(off[bad] - 0.25).max() > 0.2
+    assert np.abs(auto[bad] - 0.25).max() < 0.03
+    assert np.array_equal(auto[~bad], off[~bad])
+    # by default the sidecar's map, and a recording without one is read as it is
+    assert np.array_equal(rate("plain"), off)
+    assert main(["info", str(dat), "-q", "--save-defects"]) == 0
+    assert np.array_equal(rate("saved"), auto)
 
 
 @pytest.mark.parametrize("defects, what", [

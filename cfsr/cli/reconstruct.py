@@ -66,12 +66,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--defects",
-        default="auto",
-        metavar="auto|off|FILE",
-        help="hot and dead pixel correction before the method: 'auto' (default) uses the "
-        "map in the recording's sidecar, else one found from its first 2,000 steps; 'off' "
-        "keeps the spikes as recorded; FILE is a calibration map (JSON, 'cfsr info "
-        "--export-defects')",
+        default="sidecar",
+        metavar="sidecar|auto|off|FILE",
+        help="hot and dead pixel correction before the method: 'sidecar' (default) uses the "
+        "map in the recording's sidecar ('cfsr info --save-defects' puts one there) and "
+        "leaves a recording without one as it is; 'auto' uses the sidecar's map, else one "
+        "found in the first 2,000 steps; 'off' keeps the spikes as recorded; FILE is a "
+        "calibration map (JSON, 'cfsr info --export-defects')",
     )
     p.add_argument(
         "--video",

@@ -255,13 +255,17 @@ def corrected(rec: SpikeRecording, defect_map: DefectMap | None = None, *,
 
 
 def with_defects(rec: SpikeRecording, option: str | None) -> SpikeRecording:
-    """``rec`` as the ``--defects`` option asks: ``"auto"`` (default, None) corrects with the
-    sidecar's map, else with one estimated from the first 2,000 steps; ``"off"`` leaves the
+    """``rec`` as the ``--defects`` option asks: ``"sidecar"`` (default, None) corrects with the
+    map in the recording's sidecar and leaves a recording without one as it is; ``"auto"``
+    uses the sidecar's map, else one found in the first 2,000 steps; ``"off"`` leaves the
     spikes as recorded; anything else is a calibration file (:func:`load_map`)."""
     from cfsr.defects.defect_map import load_map
 
     if option == "off":
         return rec
-    if option in (None, "auto"):
+    if option in (None, "sidecar"):
+        given = map_of(rec)
+        return rec if given is None else corrected(rec, given)
+    if option == "auto":
         return corrected(rec)
     return corrected(rec, load_map(option, rec.layout.shape))
