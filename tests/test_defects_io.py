@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -15,13 +16,21 @@ from cfsr.simulate import Scene, simulate_to_dat
 H, W = 48, 64
 
 
-@pytest.fixture
-def dat(tmp_path):
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
     """A flat grey wall (rate 0.25) seen by a sensor with hot and dead pixels, 2,400 steps."""
-    path = tmp_path / "defects.dat"
+    path = tmp_path_factory.mktemp("made") / "defects.dat"
     simulate_to_dat(Scene("flat", np.full((H, W), 0.5, np.float32)), 2400, path, seed=5,
                     gt_every=1200, noise="hot_fraction=0.004,hot_rate=0.5,dead_fraction=0.004")
     return path
+
+
+@pytest.fixture
+def dat(made, tmp_path):
+    """A copy of :func:`made` (with its sidecar and ground truth) that a test may change."""
+    for f in made.parent.iterdir():
+        shutil.copy(f, tmp_path / f.name)
+    return tmp_path / made.name
 
 
 def _truth(dat):
