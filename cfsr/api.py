@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from cfsr.methods.registry import Output, get_method, resolve_params
+from cfsr.methods.registry import Memo, Output, get_method, resolve_params
 from cfsr.spikes import SpikeRecording, as_recording
 
 __all__ = ["reconstruct", "reconstruct_outputs", "check_times"]
@@ -58,14 +58,15 @@ def reconstruct_outputs(
             stream_reconstruct(rec, m.name, ts, params=p, workers=workers, threads=threads)
         )
         return [got[t] for t in ts]
-    before, after = m.window(p)
+    settings = m.settings_of(p)  # the method's typed, frozen settings, built once
+    before, after = m.window(settings)
     got = {}
     for group in carry_groups(MethodConfig(m.name, p), ts):
-        memo: dict[str, Any] = {}  # a group's outputs may continue work from one to the next
+        memo: Memo = {}  # a group's outputs may continue work from one to the next
         for t in group:
             a = max(0, t - before)
             b = min(rec.n_frames, t + after + 1)
-            got[t] = m.run_window(rec, a, b, t, p, memo)
+            got[t] = m.run_window(rec, a, b, t, settings, memo)
     return [got[t] for t in ts]
 
 
