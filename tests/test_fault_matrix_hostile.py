@@ -1,5 +1,10 @@
 """The fault matrix, second table: hostile files and requests against a running ``cfsr serve``.
 
+The server and the commands of the rows run from the installed wheel (``pip install
+cfsr[live]`` into a fresh venv, run from a folder outside the checkout: tests/wheelenv.py)
+where the packaging tier can install it, as in CI; on a developer machine with no package
+index, from the checkout.
+
 Each row is one reproduction of something a hostile (or careless) user did to the service: a
 file the service writes, follows or lists, a request body, a header, a signal. The rows of
 :data:`ROWS` run in order against one server (started with a token and ``--log-level trace``,
@@ -20,6 +25,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import httpx
 import pytest
@@ -697,15 +703,41 @@ def _source_id(self: Ctx, name: str) -> str:
 Ctx.source_id = _source_id  # type: ignore[attr-defined]
 
 
+class Install(NamedTuple):
+    """Where the module's ``cfsr`` comes from: the command, its whole environment and the
+    folder it runs in."""
+
+    cfsr: list[str]
+    env: dict[str, str]
+    cwd: Path
+    wheel: bool
+
+
 @pytest.fixture(scope="module")
-def ctx(tmp_path_factory):
+def install(request, tmp_path_factory) -> Install:
+    """The installed wheel's ``cfsr`` (the live extra), run from a folder outside the checkout;
+    the checkout's where the wheel cannot be installed (no package index on a developer
+    machine: the packaging tier skips there, and fails under CI=true)."""
+    try:
+        bindir = request.getfixturevalue("live_install")
+    except pytest.skip.Exception:
+        return Install([sys.executable, "-m", "cfsr"], {**os.environ, **_env()}, REPO, False)
+    from wheelenv import clean_env
+
+    return Install([str(bindir / "cfsr")], clean_env(bindir),
+                   tmp_path_factory.mktemp("elsewhere"), True)
+
+
+@pytest.fixture(scope="module")
+def ctx(tmp_path_factory, install):
     root = tmp_path_factory.mktemp("hostile")
     data = root / "data"
     outside = root / "outside"
     outside.mkdir()
     write_pattern(data / "a.dat", 3000)
     s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data),
-                    "--log-level", "trace"], token=TOKEN, env={"CFSR_TOKEN": TOKEN})
+                    "--log-level", "trace"], token=TOKEN, command=[*install.cfsr, "serve"],
+                   cwd=install.cwd, env={**install.env, "CFSR_TOKEN": TOKEN})
     s.cmd = [x for x in s.cmd if x != TOKEN]
     with s:
         yield Ctx(s, data, outside)
@@ -794,7 +826,7 @@ def test_two_servers_on_one_folder_never_share_a_file(tmp_path):
     assert (data / "recordings" / "same.dat").stat().st_size == 768 * 12_500
 
 
-def test_stalled_bodies_do_not_starve_healthz_at_the_open_file_limit(tmp_path):
+def test_stalled_bodies_do_not_starve_healthz_at_the_open_file_limit(tmp_path, install):
     """Row 12, at the descriptor limit: 300 connections that send a request head and one byte
     of body, against a server limited to 256 open files. The old server ran out of
     descriptors: /healthz got no answer for 30 s and asyncio logged an accept() traceback
@@ -802,10 +834,9 @@ def test_stalled_bodies_do_not_starve_healthz_at_the_open_file_limit(tmp_path):
     ones at once, bodies time out, and every /healthz answers."""
     data = tmp_path / "data"
     write_pattern(data / "a.dat", 3000)
-    limited = ["bash", "-c", 'ulimit -n 256 && exec "$0" "$@"', sys.executable, "-m", "cfsr",
-               "serve"]
-    s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data)], env=_env(),
-                   command=limited)
+    limited = ["bash", "-c", 'ulimit -n 256 && exec "$0" "$@"', *install.cfsr, "serve"]
+    s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data)], env=install.env,
+                   command=limited, cwd=install.cwd)
     head = (f"PUT /api/config HTTP/1.1\r\nHost: 127.0.0.1:{s.port}\r\n"
             "Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n{").encode()
     with s:
@@ -835,7 +866,7 @@ def test_stalled_bodies_do_not_starve_healthz_at_the_open_file_limit(tmp_path):
     assert len(out) < 20_000, f"{len(out)} characters of log"
 
 
-def test_cli_sizes_are_refused_before_anything_is_written(tmp_path):
+def test_cli_sizes_are_refused_before_anything_is_written(tmp_path, install):
     """Row 18: command-line sizes a machine cannot hold are one line and exit 2, before any
     file is made or memory taken (each of these wrote gigabytes, allocated tens of GB, or
     left a 0-byte file first)."""
@@ -860,8 +891,9 @@ def test_cli_sizes_are_refused_before_anything_is_written(tmp_path):
             "print('peak_kb', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, "
             "file=sys.stderr); sys.exit(rc)")
     for args, flag in cases:
-        r = subprocess.run([sys.executable, "-c", peak, sys.executable, "-m", "cfsr", *args, "-q"],
-                           cwd=REPO, env=_env(), capture_output=True, text=True, timeout=300)
+        r = subprocess.run([sys.executable, "-c", peak, *install.cfsr, *args, "-q"],
+                           cwd=install.cwd, env=install.env,
+                           capture_output=True, text=True, timeout=300)
         err, _, peak_kb = r.stderr.rpartition("peak_kb ")
         assert r.returncode == 2, (args, r.returncode, err[-2000:])
         assert "Traceback" not in err and len(err.strip().splitlines()) <= 2, err
