@@ -81,18 +81,18 @@ def test_plot_colours_are_fixed_per_method(tmp_path):
 
 @pytest.fixture
 def few_timings(monkeypatch):
-    """Every timing of the benchmark at its least: one warm-up and three timed calls (what a
+    """Every timing of the benchmark at its least: one warm-up and one timed call (what a
     figure is made of; how long each runs is the benchmark's own concern, not the suite's)."""
     import cfsr.bench
 
     timed = cfsr.bench.time_call
     monkeypatch.setattr(cfsr.bench, "time_call",
-                        lambda fn, **_: timed(fn, min_time=0.0, max_reps=3))
+                        lambda fn, **_: timed(fn, min_time=0.0, max_reps=1))
 
 
 @pytest.fixture
 def smoke_sizes(monkeypatch, few_timings):
-    """``bench --quick`` at the least that still runs every part: timings of 3 calls each,
+    """``bench --quick`` at the least that still runs every part: timings of 1 call each,
     2 pool frames per split, 1.5 s of acquisition (its runs: 0.5 s each at the least), live
     runs of 3 s, 2 CFSR dense frames. The figures mean nothing at these sizes (the
     benchmark itself keeps its own); the JSON's parts and shape are what is checked."""
