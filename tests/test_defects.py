@@ -184,3 +184,16 @@ def test_the_live_ring_and_a_corrected_recording_give_the_same_spikes_in_any_rea
     sr.reset(0)  # the stream starts again: what was corrected is forgotten
     sr.push(rec.packed(0, 500), 0)
     assert np.array_equal(sr.packed(0, 500), offline.packed(0, 500))
+
+
+def test_moving_texture_stars_and_lamps_are_never_flagged_and_true_defects_are():
+    from cfsr.simulate import star_field
+
+    sky = star_field(H, W, stars=6, lamps=2)
+    for content in ("disk", "fan", sky):  # moving texture; a still sky with stars and lamps
+        counts = simulate(content, 2000, height=H, width=W).spikes.sum(0, dtype=np.int64)
+        assert classify(counts, 2000).mask.sum() == 0, content
+    sim = simulate(sky, 2000, noise="hot_fraction=0.005,hot_rate=0.25,dead_fraction=0.002")
+    s = score_map(classify(sim.spikes.sum(0, dtype=np.int64), 2000), sim.sensor.defect_map)
+    assert s["hot_precision"] == s["dead_precision"] == s["dead_recall"] == 1.0
+    assert s["hot_recall"] >= 0.9
