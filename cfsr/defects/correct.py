@@ -134,7 +134,8 @@ class DefectCorrector:
             self.learn = self.defect_map is None
         self.estimator = DefectEstimator(self.layout, self.params) if self.learn else None
         self.plan = plan_donors(self.map, self.layout)
-        self._fixed = (0, 0)  # steps [lo, hi) corrected in the ring (see before_read)
+        # per half of the mirrored ring, the steps [lo, hi) corrected in it (before_read)
+        self._fixed = [(0, 0), (0, 0)]
 
     @property
     def map(self) -> DefectMap:
@@ -162,30 +163,38 @@ class DefectCorrector:
         """Frames ``packed`` (steps ``start``..) entered the ring: learn from them; they are
         corrected only when read (:meth:`before_read`), so steps nobody reads cost nothing."""
         self.learn_from(packed, start)
-        if start < self._fixed[1]:  # the stream started again: nothing is corrected
-            self._fixed = (start, start)
+        if start < max(hi for _, hi in self._fixed):  # the stream started again
+            self._fixed = [(start, start), (start, start)]
 
     def before_read(self, buf: np.ndarray, cap: int, a: int, b: int) -> None:
-        """Correct, in place, the steps of ``[a, b)`` not corrected yet in the mirrored ring
-        ``buf`` of ``cap`` frames (step s at rows ``s % cap`` and ``s % cap + cap``)."""
+        """Correct, in place, the rows a read of steps ``[a, b)`` returns from the mirrored
+        ring ``buf`` of ``cap`` frames, where not corrected yet.
+
+        Step s is stored twice, at rows ``s % cap`` (first half) and ``s % cap + cap``
+        (second); the read is the slice from row ``a % cap``, so its first ``cap - a % cap``
+        steps come from the first half and the rest from the second. Each half keeps the span
+        of steps corrected in it, so a step costs one correction per half it is read from.
+        """
         if not (self.enabled and self.plan.targets.size) or a >= b:
             return
-        lo, hi = self._fixed
+        cut = a + cap - a % cap  # the first step the read takes from the second half
+        for half, (x, y) in enumerate(((a, min(b, cut)), (cut, b))):
+            if y > x:
+                self._fix_half(buf, cap, half, x, y)
+
+    def _fix_half(self, buf: np.ndarray, cap: int, half: int, a: int, b: int) -> None:
+        """Correct steps ``[a, b)`` (at most ``cap``) in ``half`` of the ring, but those its
+        corrected span already holds; the span grows to cover them."""
+        lo, hi = self._fixed[half]
         if b < lo or a > hi:  # apart from what is corrected: start a new corrected span
-            todo, self._fixed = [(a, b)], (a, b)
+            todo, self._fixed[half] = [(a, b)], (a, b)
         else:
             todo = [(a, min(b, lo)), (max(a, hi), b)]
-            self._fixed = (min(a, lo), max(b, hi))
+            self._fixed[half] = (min(a, lo), max(b, hi))
         for x, y in todo:
-            for s in range(x, y, cap):  # at most cap steps at a time: one pass over the ring
-                self._fix_rows(buf, cap, s, min(y, s + cap))
-
-    def _fix_rows(self, buf: np.ndarray, cap: int, a: int, b: int) -> None:
-        i0, n = a % cap, b - a
-        k = min(n, cap - i0)
-        for x, y in ((i0, i0 + k), (i0 + cap, i0 + cap + k), (0, n - k), (cap, cap + n - k)):
-            if y > x:
-                _copy_bits(buf[x:y], self.plan.targets, self.plan.donors)
+            if y > x:  # rows x % cap .. of this half, with no wrap inside one read's half
+                r = x % cap + half * cap
+                _copy_bits(buf[r : r + (y - x)], self.plan.targets, self.plan.donors)
 
     def state(self) -> dict[str, Any]:
         """What a status shows: ``state`` (off / learning / ready / given), the counts of hot

@@ -67,8 +67,8 @@ def correction_cost(rec: CorrectedRecording, window: int, *, reps: int = 20) -> 
 
     ``ms_per_frame``: one frame's window of ``window`` steps read through the correction
     (copy included, as the offline path reads it). ``live_us_per_step``: the live path once its
-    map is ready, per streamed step when every step is read: counting
-    (:meth:`DefectCorrector.arrived`), correcting both copies in the ring
+    map is ready, per streamed step when every step is read once: counting
+    (:meth:`DefectCorrector.arrived`), correcting the copy in the ring the read returns
     (:meth:`DefectCorrector.before_read`) and a map rebuild shared out over the steps between
     two rebuilds. ``rebuild_ms``: one rebuild (classification and donors).
     """
