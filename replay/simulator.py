@@ -107,6 +107,6 @@ class SimulatorSource(ReplayDevice):
             scene, steps, height=height, width=width, seed=seed, cache_dir=cache_dir
         )
         super().__init__(
-            rec, speed=speed, loop=True, kind="simulator", name=f"simulator: {scene}", **kw
+            rec, speed=speed, loop=True, kind="sim", name=f"simulator: {scene}", **kw
         )
         self.scene = scene

@@ -33,6 +33,7 @@ from cfsr_live.service.body import (
     short,
 )
 from cfsr_live.service.hub import FrameHub
+from cfsr_live.service.local_pages import LocalPagesOnly
 from cfsr_live.service.runtime import Runtime
 from cfsr_live.service.security import AttemptThrottle, SessionStore
 from cfsr_live.service.settings import Settings
@@ -179,6 +180,8 @@ def _add_guards(app: FastAPI, settings: Settings) -> None:
     app.add_middleware(StrictJsonBody, admit=_token_before_body,
                        max_in_flight=max(4, min(MAX_BODIES_IN_FLIGHT,
                                                 settings.max_connections // 4)))
+    # every HTML page loads from this service only (cfsr_live.service.local_pages)
+    app.add_middleware(LocalPagesOnly)
     # outermost: a request from a foreign page or a rebinding name goes no further
     app.add_middleware(
         HostOriginGuard,

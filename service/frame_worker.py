@@ -90,6 +90,8 @@ class FrameWorker(LadderSteps):
         #: clients watching the frames (None: not told, as a worker run without the web
         #: process's hub: compute at max_fps)
         self.viewers: int | None = None
+        #: the step to compute instead of the newest (a paused replay's compare), or None
+        self.hold: int | None = None
         # not waiting for the processes to start: the heartbeat and the first frames of the
         # loop do not wait on their imports
         self.pool = FramePool(workers, threads, wait=False, nice=RECONSTRUCTION_NICE)
@@ -127,6 +129,7 @@ class FrameWorker(LadderSteps):
         as out of order (older than the last shown). Frames still computing on the old clock
         are dropped when they come back."""
         self._clock += 1
+        self.hold = None  # a step of the old clock
         self._arrival.clear()
         self._last_submit = self._last_shown = None
         if self._ready:
@@ -274,6 +277,7 @@ class FrameWorker(LadderSteps):
         t = rec.latest_step()
         if t is None:
             return False
+        t = self._held(t)
         if self._compiling_first() is not None:
             return self._submit_rung(t, now)
         if self._first_pending and any(self._current(k) and not k.rung
@@ -443,6 +447,21 @@ class FrameWorker(LadderSteps):
             old = self.st[name]
             self.st[name] = v if old == 0 else (1 - a) * old + a * v
 
+
+    def hold_at(self, step: int | None) -> None:
+        """Compute at ``step`` from now on (None: the newest step), once per config; a step
+        back on purpose, so its frame is shown though a later one was."""
+        self.hold = step
+        self._last_submit = self._last_shown = None
+        self._next_out = 0.0
+
+    def _held(self, newest: int) -> int:
+        """The step to compute: the held one while the buffer holds its window (the widest
+        tier's, up to ``newest``), else ``newest``."""
+        h, rec = self.hold, self.rec
+        if h is None or rec is None or not rec.first_step + rec.before <= h <= newest:
+            return newest
+        return h
 
     def watch(self, viewers: int) -> None:
         """``viewers`` clients watch from now on: with none, compute :data:`UNWATCHED_FPS`

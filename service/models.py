@@ -232,6 +232,15 @@ class SeekRequest(BaseModel):
     )
 
 
+class HoldRequest(BaseModel):
+    model_config = STRICT
+
+    step: int | None = Field(
+        ge=0, le=1 << 62,
+        description="the step to compute frames at instead of the newest, while the worker's "
+        "buffer holds it (comparing methods on one step of a paused replay); null: the newest")
+
+
 class StepRequest(BaseModel):
     model_config = STRICT
 

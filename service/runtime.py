@@ -429,6 +429,12 @@ class Runtime:
         if self.worker is not None:
             self.worker.set_viewers(count)
 
+    def hold_step(self, step: int | None) -> None:
+        """Frames at ``step`` instead of the newest while the worker's buffer holds it (a
+        paused replay's compare; None: the newest again)."""
+        if self.worker is not None:
+            self.worker.hold_step(step)
+
     # -- status -----------------------------------------------------------------------------------
     def _rate_hz(self) -> float:
         """The current source's sensor rate, steps/s (the nominal one with no source)."""
@@ -460,7 +466,7 @@ class Runtime:
             compute_ms=worker.compute_ms,
             frame_step=frames.frame_step,
             drops=Drops(
-                usb=int(source.usb_lost_frames + lost_before.get("lost_frames", 0)),
+                usb=int(source.link_lost_frames + lost_before.get("lost_frames", 0)),
                 replay=int(source.replay_behind_frames
                            + lost_before.get("replay_behind_frames", 0)),
                 ring=worker.ring_lost_frames,

@@ -125,8 +125,9 @@ class SourceReport(BaseModel):
     """The source's report: its ``status`` section and the frames it lost (for ``drops``)."""
 
     status: SourceStatus
-    usb_lost_frames: int = Field(
-        0, description="frames lost on the camera's link (the counter its source kind names)")
+    link_lost_frames: int = Field(
+        0, description="frames lost on the source's link to the host, a USB camera's or any "
+        "other kind's (the counter its source kind names)")
     replay_behind_frames: int = Field(0, description="frames a paced replay skipped")
 
 
@@ -169,7 +170,7 @@ def source_report(
         last_error=src.last_error or (acq.last_error if acq else None),
     )
     link, paced = source_losses(src, own)
-    return SourceReport(status=status, usb_lost_frames=link, replay_behind_frames=paced)
+    return SourceReport(status=status, link_lost_frames=link, replay_behind_frames=paced)
 
 
 def source_losses(src: Source, counters: dict[str, Any] | None = None) -> tuple[int, int]:

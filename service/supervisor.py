@@ -41,6 +41,7 @@ from cfsr_live.service.worker_messages import (
     ConfigAck,
     ConfigAnswer,
     Configure,
+    HoldStep,
     Inject,
     Ready,
     Stop,
@@ -125,6 +126,7 @@ class WorkerSupervisor:
         self._counter_base: dict[str, int] = {}
         self._ingest = RateMeter()  # steps ingested per second, sampled by :meth:`sample`
         self._viewers: int | None = None  # clients watching, as last told (None: not told)
+        self._hold: int | None = None  # the step the worker computes at instead of the newest
         #: (time, config version, frames shown full, fast) sampled by :meth:`sample`
         self._shares: deque[tuple[float, int, int, int]] = deque()
 
@@ -163,6 +165,8 @@ class WorkerSupervisor:
                 self._proc.start()
             if self._viewers is not None:  # a restarted worker knows who watches
                 self._cmd_q.put(Viewers(self._viewers))
+            if self._hold is not None:
+                self._cmd_q.put(HoldStep(self._hold))
             self._started_at = time.monotonic()
             self._last_message = None
 
@@ -258,6 +262,13 @@ class WorkerSupervisor:
             if count != self._viewers:
                 self._viewers = count
                 self._send(Viewers(count))
+
+    def hold_step(self, step: int | None) -> None:
+        """Make the worker compute at ``step`` instead of the newest one while its buffer
+        holds that step (None: the newest again); see :class:`HoldStep`."""
+        with self._lock:
+            self._hold = step
+            self._send(HoldStep(step))
 
     def inject(self, fault: Literal["crash", "raise", "slow_first"], **kw: Any) -> None:
         """Test hooks: ``crash`` (hard exit, ``code=``), ``raise`` (uncaught Python

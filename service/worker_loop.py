@@ -26,6 +26,7 @@ from cfsr_live.service.frame_worker import FrameWorker
 from cfsr_live.service.worker_messages import (
     Attach,
     Configure,
+    HoldStep,
     Inject,
     Ready,
     Stop,
@@ -90,6 +91,8 @@ def worker_main(
                         return
                     if isinstance(cmd, Configure):
                         w.configure(cmd.config)
+                    elif isinstance(cmd, HoldStep):
+                        w.hold_at(cmd.step)
                     elif isinstance(cmd, Viewers):
                         w.watch(cmd.count)
                     elif isinstance(cmd, Attach):

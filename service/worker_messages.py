@@ -29,6 +29,7 @@ __all__ = [
     "Configure",
     "Inject",
     "Ready",
+    "HoldStep",
     "Stop",
     "Viewers",
     "WorkerError",
@@ -74,6 +75,15 @@ class Viewers:
     ``/readyz`` and ``/metrics``) instead of ``max_fps``."""
 
     count: int
+
+
+@dataclass(frozen=True)
+class HoldStep:
+    """Compute frames at ``step`` instead of the newest one while the buffer still holds its
+    window (a paused replay's compare: the chosen method on the pinned step, whichever method
+    looks further ahead); None: the newest again."""
+
+    step: int | None
 
 
 @dataclass(frozen=True)

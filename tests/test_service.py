@@ -59,6 +59,11 @@ def test_health_status_and_openapi(server):
                  "/api/frame.png", "/stream.mjpg", "/metrics", "/api/methods", "/api/limits"):
         assert path in spec["paths"], path
     assert "StatusModel" in spec["components"]["schemas"]
+    # every page loads from this service only (the browser refuses what points elsewhere)
+    for page in ("/", "/docs", "/redoc"):
+        policy = server.get(page).headers.get("content-security-policy", "")
+        assert "default-src 'self'" in policy and "connect-src 'self'" in policy, page
+    assert "content-security-policy" not in server.get("/api/limits").headers
 
 
 def test_limits_are_the_ones_the_api_enforces(server):
@@ -222,7 +227,7 @@ def test_simulator_and_usb_sources_through_the_same_interface(back_on_a_dat):
     server = back_on_a_dat
     r = server.put("/api/source", json={"id": "sim:pattern"})
     assert r.status_code == 200, r.text
-    st = server.wait_for(lambda s: s["source"]["kind"] == "simulator" and s["output_fps"] > 0,
+    st = server.wait_for(lambda s: s["source"]["kind"] == "sim" and s["output_fps"] > 0,
                          what="simulator frames")
     assert st["source"]["capabilities"] == ["replay"]
     assert ws_frames(server, 2)
@@ -304,6 +309,21 @@ def test_replay_controls(back_on_a_dat):
     r = server.put("/api/replay", json={"speed": 0.5, "playing": True, "loop": True})
     assert r.json()["speed"] == 0.5 and r.json()["playing"] is True
     assert server.status()["source"]["replay"]["speed"] == 0.5
+    # paused, frames at a held step (the viewer's compare on one step), then the newest again
+    shown = server.status()["frame_step"]  # may be of the source's previous clock
+    server.wait_for(lambda s: s["frame_step"] not in (None, shown), what="a frame, playing")
+    server.put("/api/replay", json={"playing": False})
+    last: list[int | None] = [None]
+
+    def settled() -> int | None:  # the same step at two polls over a second apart: the newest
+        step, last[0] = last[0], server.status()["frame_step"]
+        return step if step is not None and step == last[0] else None
+
+    held = wait_until(settled, 30, "the paused replay's newest frame", interval=1.2) - 50
+    assert server.post("/api/replay/hold", json={"step": held}).json() == {"step": held}
+    server.wait_for(lambda s: s["frame_step"] == held, what=f"a frame at the held step {held}")
+    assert server.post("/api/replay/hold", json={"step": None}).status_code == 200
+    assert server.post("/api/replay/hold", json={"step": -1}).status_code == 422
 
 
 def test_record_writes_dat_and_sidecar(server, data_dir):

@@ -7,9 +7,10 @@ cache being keyed by each module's path: about 95 s of this test's waits.)
 What a user does is what the test does: frames arrive; the live figures update; a method is
 picked and applies by itself; a preset fills the form; a parameter change applies as typed;
 two bad fields each show their own error; masks toggle (and with ``m``); the heat map; the
-compare view reaches the same step on a paused replay; a snapshot saves PNGs that carry the
-method, the step and the parameters; ``/docs`` renders with every request off the machine
-refused.
+compare view reaches the same step on a paused replay, whichever method looks further ahead;
+a snapshot saves PNGs that carry the method, the step and the parameters; on a phone the
+controls sit under the picture and the compare labels do not overlap; ``/docs`` renders with
+every request off the machine refused.
 
 The screenshots in the docs come from here: ``CFSR_SCREENSHOT_DIR=docs/img pytest
 tests/test_viewer.py`` rewrites ``docs/img/viewer*.png`` (without it they go to a temporary
@@ -142,6 +143,21 @@ def _pick_method(page, name, timeout=300_000):
     page.select_option("#method-select", name)
     _wait(page, "(m) => window.cfsrViewer.method === m", arg=name, timeout=timeout)
     _wait(page, "(n) => window.cfsrViewer.drawn > n", arg=drawn)
+
+
+def _compare_on_one_step(page, method: str) -> int:
+    """Pin the frame shown, pick ``method``: on the paused replay the live side reaches the
+    pinned step, whichever of the two methods looks further ahead. Returns that step."""
+    from playwright.sync_api import expect
+
+    page.click("#compare")
+    _wait(page, "() => window.cfsrViewer.compare && window.cfsrViewer.pinned")
+    pinned = page.evaluate("window.cfsrViewer.pinned.frame.step")
+    _pick_method(page, method)
+    _wait(page, "([m, s]) => window.cfsrViewer.method === m && window.cfsrViewer.step === s",
+          arg=[method, pinned], timeout=120_000)
+    expect(page.locator("#compare-msg")).to_contain_text("same step")
+    return pinned
 
 
 def _key(page, key):
@@ -287,13 +303,7 @@ def test_viewer_in_chromium(browser, server, tmp_path):
 
     # compare: pin TFP, pick CSR; on the paused replay both sides reach the same step
     _pick_method(page, "tfp")
-    page.click("#compare")
-    _wait(page, "() => window.cfsrViewer.compare && window.cfsrViewer.pinned")
-    pinned = page.evaluate("window.cfsrViewer.pinned.frame.step")
-    _pick_method(page, "csr")
-    _wait(page, "(s) => window.cfsrViewer.method === 'csr' && window.cfsrViewer.step === s",
-          arg=pinned, timeout=120_000)
-    expect(page.locator("#compare-msg")).to_contain_text("same step")
+    pinned = _compare_on_one_step(page, "csr")
     expect(page.locator("#label-a")).to_contain_text(f"tfp @ step {pinned}")
     page.check("#ov-coarse")
     page.fill("#split", "50")
@@ -312,6 +322,12 @@ def test_viewer_in_chromium(browser, server, tmp_path):
     assert json.loads(text["parameters"]) == _server_params(server)
     assert names[1].endswith("-masks.png") and "coarse" in text["masks"]
     page.click("#compare-close")
+
+    # the other order: pin CSR, pick TFP, whose frame would come later from the same data (it
+    # looks less far ahead): the service holds the pinned step, so both sides show one step
+    _compare_on_one_step(page, "tfp")
+    page.click("#compare-close")
+
 
     # CFSR: its parameters grouped and collapsed, choices as menus, the quality tier when the
     # method has one; its first frame may wait on the compiler (the page says so)
@@ -336,12 +352,43 @@ def test_viewer_in_chromium(browser, server, tmp_path):
     _wait(page, "(m) => window.cfsrViewer.method === m && "
                 "document.getElementById('compile-note').classList.contains('hidden')",
           arg="cfsr")
-    page.screenshot(path=str(shots / "viewer.png"))
 
-    # play again: frames move on
+    # play again: frames move on, and the docs' picture is the product streaming, its output
+    # rate the one this page receives
     page.click("#play")
     s1 = page.evaluate("window.cfsrViewer.step")
     _wait(page, "(s) => window.cfsrViewer.step > s", arg=s1, timeout=120_000)
+    n_status = page.evaluate("window.cfsrViewer.statusUpdates")
+    _wait(page, "(n) => window.cfsrViewer.statusUpdates > n + 2", arg=n_status)
+    assert float(page.inner_text("#fig-fps")) > 0, "output rate 0 while frames arrive"
+    page.screenshot(path=str(shots / "viewer.png"))
+    assert not errors, errors
+    page.close()
+
+
+@pytest.mark.browser
+@pytest.mark.timeout(900)
+def test_viewer_on_a_phone(browser, server, tmp_path):
+    """At 390 x 844: the method menu sits under the picture (not below the figures), and the
+    compare view's two labels do not overlap."""
+    page = browser.new_page(viewport={"width": 390, "height": 844})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/")
+    _wait(page, "() => window.cfsrViewer && window.cfsrViewer.frames >= 3")
+    frame = page.locator("#frame").bounding_box()
+    menu = page.locator("#method-select").bounding_box()
+    figures = page.locator("#figures").bounding_box()
+    assert menu["y"] < figures["y"], "the method menu is below the live figures"
+    assert menu["y"] - (frame["y"] + frame["height"]) < 300, (frame, menu)
+    page.click("#compare")
+    _wait(page, "() => window.cfsrViewer.compare && window.cfsrViewer.pinned")
+    _wait(page, "() => !document.getElementById('label-b').classList.contains('hidden')"
+                " && document.getElementById('label-b').textContent !== ''")
+    a, b = (page.locator(f"#label-{k}").bounding_box() for k in "ab")
+    assert a["x"] + a["width"] <= b["x"] or a["y"] + a["height"] <= b["y"], (a, b)
+    page.screenshot(path=str(_shots(tmp_path) / "viewer-phone.png"))
+    page.click("#compare-close")
     assert not errors, errors
     page.close()
 
@@ -350,8 +397,8 @@ def test_viewer_in_chromium(browser, server, tmp_path):
 @pytest.mark.timeout(900)
 def test_api_docs_work_offline(browser, server, tmp_path):
     """/docs (Swagger UI) and /redoc render with every request that leaves the machine
-    refused: their scripts, styles and fonts come from the installed packages, not from a
-    CDN."""
+    refused, and none is even asked for: their scripts, styles and fonts come from the
+    installed packages, and the pages' policy refuses what still points outside."""
     context = browser.new_context(viewport=VIEWPORT)
     outside: list[str] = []
 
@@ -359,10 +406,9 @@ def test_api_docs_work_offline(browser, server, tmp_path):
         url = route.request.url
         if url.startswith(server.url) or url.startswith("data:"):
             return route.continue_()
-        # what the pages need to work; ReDoc's footer asks for its maker's logo (an image),
-        # which is refused like the rest but is no part of the docs
-        if route.request.resource_type != "image":
-            outside.append(url)
+        # none at all: ReDoc's footer logo (from a CDN) is refused by the pages' own policy
+        # before it is asked for
+        outside.append(url)
         return route.abort()
 
     context.route("**/*", only_local)  # every page of the context, the docs' popup too

@@ -434,6 +434,7 @@
       const c = await api("/api/config", { method: "PUT", body });
       const rebuild = !state.config || state.config.method !== c.method || body.params === undefined;
       state.config = c; state.applied++;
+      if (state.pinned) state.pinned.aligned = 0;  // a new config: its frames are aligned again
       if (rebuild) buildParams(c.method, c.params);
       for (const el of document.querySelectorAll(".field-err")) el.textContent = "";
       for (const el of document.querySelectorAll(".invalid")) el.classList.remove("invalid");
@@ -541,23 +542,20 @@
           : " (pause the replay to compare on one step)");
   }
   // On a paused replay each method outputs a step its own look-ahead before the same data end,
-  // so the live frame may be earlier or later than the pinned one. Earlier: deliver the
-  // difference. Later: seek back by the difference and a lead that refills the method's
-  // window, then deliver the lead, so the data ends where the pinned step needs it.
+  // so the live frame may be earlier or later than the pinned one. Later: the service holds
+  // the pinned step (holdAt). Earlier: deliver the difference, and it reaches the pinned step.
   let aligning = 0;
   async function alignCompare(f) {
     const p = state.pinned, r = replayState();
     const d = f.step - (p ? p.frame.step : f.step);
-    if (!p || !r || r.playing || d === 0 || aligning || p.aligned >= 3) return;
+    // only after a config change since the pin, and once the chosen method is on the pinned
+    // step, not again: the steps a user takes are theirs
+    if (!p || !r || r.playing || aligning || p.aligned >= 3 || state.applied === p.appliedAt) return;
+    if (!state.config || f.method !== state.config.method) return;  // the old config's frames
+    if (d === 0) { p.aligned = 3; return; }
     aligning = 1; p.aligned = (p.aligned || 0) + 1;
     try {
-      if (d < 0) {
-        noteReplay(await replay("POST", "/api/replay/step", { n: -d }));
-      } else {
-        const lead = Math.min(16 * STEP_FRAMES, Math.max(0, r.position - d - r.start));
-        noteReplay(await replay("POST", "/api/replay/seek", { position: r.position - d - lead }));
-        if (lead) noteReplay(await replay("POST", "/api/replay/step", { n: lead }));
-      }
+      if (d < 0) noteReplay(await replay("POST", "/api/replay/step", { n: -d }));
     } finally { aligning = 0; }
   }
   async function startCompare() {
@@ -566,7 +564,8 @@
     if (r && r.playing) { noteReplay(await replay("PUT", "/api/replay", { playing: false })); await nextFrame(); }
     if (!latest) await nextFrame();
     const f = latest;
-    state.pinned = { frame: f, params: state.config ? state.config.params : {}, redraw: true };
+    state.pinned = { frame: f, params: state.config ? state.config.params : {}, redraw: true, appliedAt: state.applied };
+    if (replayState()) await holdAt(f.step);  // the next methods' frames on this step too
     state.compare = true;
     pinCanvas.classList.remove("hidden");
     $("compare-bar").classList.remove("hidden");
@@ -575,6 +574,7 @@
   }
   function stopCompare() {
     state.pinned = null; state.compare = false;
+    if (held) holdAt(null);
     pinCanvas.classList.add("hidden");
     $("compare-bar").classList.add("hidden");
     $("compare").classList.remove("active");
@@ -691,20 +691,29 @@
   function noteReplay(st) {
     if (st && state.lastStatus && state.lastStatus.source) state.lastStatus.source.replay = st;
   }
+  // While comparing on a paused replay the service computes frames at the pinned step (a
+  // method that looks less far ahead would show a later one); anything the user does to the
+  // replay (play, a step, a seek) ends that, and the live side moves on.
+  let held = false;
+  async function holdAt(step) { held = step !== null; return replay("POST", "/api/replay/hold", { step }); }
+  async function userReplay(method, path, body) {
+    if (held) await holdAt(null);
+    return replay(method, path, body);
+  }
   function stepBack() {
     const r = replayState();
-    if (r) replay("POST", "/api/replay/seek", { position: Math.max(r.start, r.position - 2 * STEP_FRAMES) })
+    if (r) userReplay("POST", "/api/replay/seek", { position: Math.max(r.start, r.position - 2 * STEP_FRAMES) })
       .then(() => replay("POST", "/api/replay/step", { n: STEP_FRAMES }));
   }
-  $("play").addEventListener("click", () => replay("PUT", "/api/replay", { playing: true }));
+  $("play").addEventListener("click", () => userReplay("PUT", "/api/replay", { playing: true }));
   $("pause").addEventListener("click", () => replay("PUT", "/api/replay", { playing: false }));
-  $("step").addEventListener("click", () => replay("POST", "/api/replay/step", { n: STEP_FRAMES }));
+  $("step").addEventListener("click", () => userReplay("POST", "/api/replay/step", { n: STEP_FRAMES }));
   $("back").addEventListener("click", stepBack);
   $("loop").addEventListener("change", () => replay("PUT", "/api/replay", { loop: $("loop").checked }));
   $("speed").addEventListener("change", () => replay("PUT", "/api/replay", { speed: Number($("speed").value) }));
   $("seek").addEventListener("input", () => { seeking = true; });
   $("seek").addEventListener("change", async () => {
-    await replay("POST", "/api/replay/seek", { position: Number($("seek").value) });
+    await userReplay("POST", "/api/replay/seek", { position: Number($("seek").value) });
     seeking = false;
   });
 
@@ -736,10 +745,10 @@
     const r = replayState();
     if (ev.key === " ") {
       ev.preventDefault();
-      if (r) replay("PUT", "/api/replay", { playing: !r.playing });
+      if (r) userReplay("PUT", "/api/replay", { playing: !r.playing });
     } else if (ev.key === "ArrowRight") {
       ev.preventDefault();
-      if (r) replay("POST", "/api/replay/step", { n: STEP_FRAMES });
+      if (r) userReplay("POST", "/api/replay/step", { n: STEP_FRAMES });
     } else if (ev.key === "ArrowLeft") {
       ev.preventDefault();
       stepBack();
@@ -789,6 +798,8 @@
         + (w.threads_per_worker ? " x " + w.threads_per_worker + " thread" + (w.threads_per_worker === 1 ? "" : "s") : "")
         + ", " + t;
     }
+    // frames below acquisition once the kernels are cached (compiles stay at the default)
+    if (w.reconstruction_nice) t += ", frames at nice " + w.reconstruction_nice;
     return t + ", restarts " + w.restarts;
   }
   // the mode, the tier that made the frame on screen (the frame's own header, else the

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, HTTPException
 from cfsr_live.driver.source import SourceError, SourceState
 from cfsr_live.service.deps import RuntimeDep, hide_paths, require_token
 from cfsr_live.service.models import (
+    HoldRequest,
     ReplayState,
     ReplayUpdate,
     SeekRequest,
@@ -104,6 +105,17 @@ async def seek(body: SeekRequest, rt: RuntimeDep) -> dict:
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from exc
     return ctl.state()
+
+
+@router.post("/api/replay/hold", summary="compute frames at one step (to compare methods)",
+             responses={409: {"description": "the current source is not a replay"}})
+async def hold(body: HoldRequest, rt: RuntimeDep) -> dict:
+    """Frames at ``step`` instead of the newest while the worker's buffer holds it: on a
+    paused replay, a method that looks less far ahead than the pinned one shows the pinned
+    step too. The viewer sets it when it pins a frame and clears it on play, step or seek."""
+    _replay_to_act(rt)
+    rt.hold_step(body.step)
+    return {"step": body.step}
 
 
 @router.post("/api/replay/step", response_model=ReplayState,
