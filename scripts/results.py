@@ -200,19 +200,21 @@ def throughput_section(tp: dict[str, Any]) -> list[str]:
         out.append("")
     live = tp.get("live") or {}
     runs = [r for r in live.get("runs", []) if "error" not in r]
+    busy = any("busy" in r for r in runs)  # the live part's runs beside CPU-bound processes
     if runs:
         out += [f"The live service on the demo, replayed at real time (frames published per "
                 f"second over {_f(live.get('seconds'), '.0f')} s, max_fps "
                 f"{_f(live.get('max_fps'), '.0f')}; CFSR's tier auto picks full or fast per "
                 "frame):", "",
                 "| method | tier | processes x threads | fps | full / fast frames | compute ms | "
-                "latency ms | dropped late / out of order |", "|---|---|---|---|---|---|---|---|"]
+                "latency ms | dropped late / out of order |" + _LIVE_BUSY_HEAD[0] * busy,
+                "|---|---|---|---|---|---|---|---|" + _LIVE_BUSY_HEAD[1] * busy]
         for r in runs:
             out.append(f"| {r['method']} | {r.get('quality') or ''} | {r['workers']} x "
                        f"{r['threads']} | {_f(r.get('fps'), '.1f')} | {r.get('full_frames')} / "
                        f"{r.get('fast_frames')} | {_f(r.get('compute_ms'), '.0f')} | "
                        f"{_f(r.get('latency_ms'), '.0f')} | {r.get('dropped_late')} / "
-                       f"{r.get('dropped_order')} |")
+                       f"{r.get('dropped_order')} |" + (_live_busy_cells(r) if busy else ""))
         out.append("")
     dense = tp.get("dense") or {}
     if dense:
@@ -421,6 +423,21 @@ def compile_table(co: dict[str, Any]) -> str:
     if "pool_start_s" in co:
         table["pool_start_s"] = round(co["pool_start_s"]["median"], 2)
     return json.dumps(table, indent=1, sort_keys=True) + "\n"
+
+
+#: the live table's columns for a benchmark that also ran beside CPU-bound processes
+_LIVE_BUSY_HEAD = (" CPU-bound processes beside | computed frames shown | output fps reported / "
+                   "received | replay behind (frames) |", "---|---|---|---|")
+
+
+def _live_busy_cells(r: dict) -> str:
+    """A live run's busy figures: the processes beside it, the share of computed frames
+    shown, the output rate the service reported against what a client received, and what a
+    paced replay skipped to keep its clock."""
+    share = r.get("shown_share")
+    return (f" {r.get('busy', 0)} | {'' if share is None else _f(100 * share, '.0f') + ' %'} | "
+            f"{_f(r.get('reported_fps'), '.1f')} / {_f(r.get('received_fps'), '.1f')} | "
+            f"{(r.get('drops') or {}).get('replay', '')} |")
 
 
 def render(folder: Path = BENCH) -> str:
