@@ -23,7 +23,7 @@ from cfsr.streaming import StreamingReconstructor
 from cfsr_live.driver.source import BlockFlags
 from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
-from cfsr_live.service.kernels import RECONSTRUCTION_NICE
+from cfsr_live.service.kernel_warmup import RECONSTRUCTION_NICE
 from cfsr_live.service.ladder import LadderSteps
 from cfsr_live.service.pacing import FrameTask, late_after_s, pick_tier, tiers_of
 from cfsr_live.service.priority import FramePriority

@@ -21,7 +21,7 @@ from cfsr_live.driver.source import ReplayControl, Source
 from cfsr_live.service.catalog import SourceCatalog
 from cfsr_live.service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
-from cfsr_live.service.kernels import KernelWarmup
+from cfsr_live.service.kernel_warmup import KernelWarmup
 from cfsr_live.service.safefs import UnsafePathError, open_subfolder
 from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, RECORDING_NAME_RE, Settings, SourceSpec
 from cfsr_live.service.status import (

@@ -145,7 +145,7 @@ class Settings:
     max_connections: int = 1000
     demo_steps: int = int(os.environ.get("CFSR_DEMO_STEPS", "6000"))
     #: compile every method's kernels in a background process when they are not cached yet
-    #: (``cfsr serve`` turns it on unless ``--no-warmup``; service.kernels)
+    #: (``cfsr serve`` turns it on unless ``--no-warmup``; service.kernel_warmup)
     warmup: bool = False
 
     def __post_init__(self) -> None:

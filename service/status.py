@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, Field
 
-from cfsr_live.service.kernels import KernelStatus
+from cfsr_live.service.kernel_warmup import KernelStatus
 
 if TYPE_CHECKING:
     from cfsr_live.driver.acquisition import Acquisition

@@ -23,7 +23,8 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CFSR_SHARED_DATA", REPO.parent / "shared" / "data"))
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 # every server the suite starts would otherwise compile all kernels in the background on its
-# first start (cfsr_live.service.kernels); tests/test_kernel_warmup.py turns it on where it tests it
+# first start (cfsr_live.service.kernel_warmup); tests/test_kernel_warmup.py turns it on where
+# it tests it
 os.environ.setdefault("CFSR_WARMUP", "0")
 
 

@@ -15,7 +15,7 @@ from livehelpers import wait_until
 
 import cfsr
 from cfsr import warmup
-from cfsr_live.service.kernels import RECONSTRUCTION_NICE, KernelWarmup
+from cfsr_live.service.kernel_warmup import RECONSTRUCTION_NICE, KernelWarmup
 
 # the package, not the function cfsr.methods() that shadows it as an attribute of cfsr
 REGISTRY = importlib.import_module("cfsr.methods")

@@ -1,4 +1,5 @@
-"""Kernel warm-up in the background: a first ``cfsr serve`` compiles every method's kernels.
+"""The kernel warm-up's supervisor: a first ``cfsr serve`` compiles every method's kernels in
+the background, in a child process this module starts, follows and reports.
 
 On a fresh install numba compiles a method's kernels when the worker first runs it. The server
 therefore starts ``cfsr warmup`` (:mod:`cfsr.warmup`) once, in its own process at the
