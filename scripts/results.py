@@ -399,16 +399,21 @@ def defects_section(de: dict[str, Any]) -> list[str]:
                        for r in changed) + ".")]
     cost = {k: v for k, v in de["cost"].items() if isinstance(v, dict)}
     out += ["", f"What correcting costs ({de['cost'].get('defects', '-')} flagged pixels, "
-            "wall time in the same run): reading one frame's window through the correction "
-            "beside the method's own time per frame, and the live path per streamed step "
-            "(counting and correcting in place, map rebuilds shared out).", "",
-            "| method | window (steps) | correction ms per frame | method ms per frame | "
-            "share | live µs per step |", "|---|---|---|---|---|---|"]
+            "wall time in the same run), beside each method's own time per frame: a frame's "
+            "window read offline through a corrected copy, and corrected in the live buffer "
+            "(each step of the window read once; counting and map rebuilds included, per "
+            "streamed step in the last column).", "",
+            "| method | window (steps) | method ms per frame | offline ms (share) | "
+            "live ms (share) | live µs per step |", "|---|---|---|---|---|---|"]
+
+    def share(ms: Any, frac: Any) -> str:
+        return f"{_f(ms, '.3f')} ({_f(100 * frac if _ok(frac) else None, '.1f')} %)"
+
     for m in _order(list(cost)):
         c = cost[m]
-        out.append(f"| {m} | {c['window_steps']} | {_f(c['ms_per_frame'], '.3f')} | "
-                   f"{_f(c['method_ms_per_frame'], '.1f')} | "
-                   f"{_f(100 * c['fraction'] if _ok(c.get('fraction')) else None, '.1f')} % | "
+        out.append(f"| {m} | {c['window_steps']} | {_f(c['method_ms_per_frame'], '.1f')} | "
+                   f"{share(c['ms_per_frame'], c.get('fraction'))} | "
+                   f"{share(c.get('live_ms_per_frame'), c.get('live_fraction'))} | "
                    f"{_f(c['live_us_per_step'], '.2f')} |")
     out.append("")
     return out
