@@ -198,3 +198,14 @@ def test_moving_texture_stars_and_lamps_are_never_flagged_and_true_defects_are()
     s = score_map(classify(sim.spikes.sum(0, dtype=np.int64), 2000), sim.sensor.defect_map)
     assert s["hot_precision"] == s["dead_precision"] == s["dead_recall"] == 1.0
     assert s["hot_recall"] >= 0.9
+
+
+def test_steps_read_before_the_map_changed_are_corrected_with_the_new_one():
+    sim, rec = _flat_scene_with_defects(1200)
+    fix = DefectCorrector(rec.layout, params=DefectParams(warmup=1000, refresh=256))
+    sr = StreamingReconstructor("tfp", rec.layout, slack=1024, defects=fix)
+    sr.push(rec.packed(0, 200), 0)
+    assert np.array_equal(sr.packed(100, 200), rec.packed(100, 200))  # no map yet: as pushed
+    sr.push(rec.packed(200, 1200), 200)
+    assert fix.map.mask.sum() > 0
+    assert np.array_equal(sr.packed(100, 200), correct_packed(rec.packed(100, 200), fix.plan))

@@ -152,11 +152,7 @@ class DefectCorrector:
             if self.defect_map is None or est.ready:
                 self.defect_map = None
                 self.plan = plan_donors(est.map, self.layout, est.counts())
-
-    def process(self, packed: np.ndarray, start: int) -> np.ndarray:
-        """Learn from ``packed`` (first frame step ``start``); return a corrected copy."""
-        self.learn_from(packed, start)
-        return correct_packed(packed, self.plan) if self.enabled else packed
+                self._fixed = [(0, 0), (0, 0)]  # buffered steps get the new map when read
 
     # -- the mirrored ring of a StreamingReconstructor: steps are corrected when first read --
     def arrived(self, packed: np.ndarray, start: int) -> None:
