@@ -36,6 +36,9 @@ __all__ = ["TASK_HANG_S", "UNWATCHED_FPS", "FrameWorker"]
 
 
 
+#: seconds ahead of a frame's start that the worker copies the newest ring blocks in; before
+#: that it leaves them in the ring (a skip, counted in ``worker_skip_frames``)
+INGEST_AHEAD_S = 0.05
 #: frames a second with no client watching: enough for ``/readyz`` and ``/metrics`` to see the
 #: worker publish, without spending the machine on frames nobody sees
 UNWATCHED_FPS = 1.0
@@ -221,8 +224,14 @@ class FrameWorker(LadderSteps):
         pushed = 0
         if not self.config.deterministic:
             need_blocks = -(-self.needed_frames() // ring.slot_frames) + 1
-            if reader.backlog > need_blocks + 1:
-                reader.skip_to_latest(need_blocks)  # counted in reader.skipped_frames
+            if reader.backlog > need_blocks + 1 or (
+                reader.backlog and not self._start_due(INGEST_AHEAD_S)
+            ):
+                # counted in reader.skipped_frames; with no frame due soon, the newest blocks
+                # stay in the ring uncopied (the CPU goes to acquisition and to the pool)
+                reader.skip_to_latest(need_blocks)
+                if not self._start_due(INGEST_AHEAD_S):
+                    return 0
         budget = time.monotonic() + 0.05
         while True:
             blk = reader.poll()
@@ -248,6 +257,20 @@ class FrameWorker(LadderSteps):
                 break
         self.bump("steps_ingested", pushed)
         return pushed
+
+    def _start_due(self, ahead_s: float) -> bool:
+        """Whether a frame (or a stand-in) may start within ``ahead_s`` seconds: the pace
+        allows it, and a pool process is idle or due to finish by its measured cost."""
+        now = time.monotonic() + ahead_s
+        if self._first_pending and self._first_since is not None and now >= self._fallback_next:
+            return True  # a stand-in, computed here
+        if now < self._next_out:
+            return False
+        if self.pool.idle:
+            return True
+        ends = [k.submitted + self._ema[k.quality] / 1e3 for k in self._tasks.values()
+                if k.quality in self._ema and not k.cold]
+        return not ends or now >= min(ends)
 
     def _arrival_of(self, step: int) -> float:
         for end, t in self._arrival:
