@@ -21,6 +21,7 @@ from schemathesis.checks import not_a_server_error
 from schemathesis.specs.openapi.checks import (
     content_type_conformance,
     response_schema_conformance,
+    status_code_conformance,
 )
 
 pytestmark = [pytest.mark.fuzz, pytest.mark.timeout(1200)]
@@ -28,6 +29,10 @@ pytestmark = [pytest.mark.fuzz, pytest.mark.timeout(1200)]
 EXAMPLES = int(os.environ.get("CFSR_FUZZ_EXAMPLES", "40"))
 #: endpoints that never end (a stream) or only exist for tests
 NOT_FUZZED = r"^/(stream\.mjpg|api/debug/.*)$"
+#: probes whose 503 is an answer ("not ready"), which the fuzzer's own configs and sources
+#: cause on the way (a worker restarting, a source in error): their status must be a
+#: documented one instead of below 500
+PROBES = frozenset({"/readyz"})
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +51,7 @@ def _fuzz_operation(op, base_url: str, mode) -> tuple[int, list[str]]:
 
     ran = 0
     failures: list[str] = []
+    status_check = status_code_conformance if op.path in PROBES else not_a_server_error
 
     @given(case=op.as_strategy(generation_mode=mode))
     @settings(max_examples=EXAMPLES, deadline=None, database=None,
@@ -56,8 +62,7 @@ def _fuzz_operation(op, base_url: str, mode) -> tuple[int, list[str]]:
         try:
             case.call_and_validate(
                 base_url=base_url,
-                checks=[not_a_server_error, response_schema_conformance,
-                        content_type_conformance],
+                checks=[status_check, response_schema_conformance, content_type_conformance],
                 timeout=120,
             )
         except (Exception, BaseExceptionGroup) as exc:  # noqa: BLE001 - reported below

@@ -63,7 +63,9 @@ def _no_frame_for(request: Request, rt, frames_out: float) -> float:
 
 @router.get("/readyz", summary="503 unless the source streams (and is not in error), the "
             "worker is alive, beat "
-            f"within {READY_HEARTBEAT_S:g} s and publishes frames of what streams in")
+            f"within {READY_HEARTBEAT_S:g} s and publishes frames of what streams in",
+            responses={503: {"description": "not ready (the same fields, and the reason when "
+                                            "one is known)"}})
 async def readyz(request: Request, response: Response, rt: RuntimeDep) -> dict:
     w = rt.worker
     age = w.heartbeat_age() if w else math.inf
