@@ -16,6 +16,7 @@ import time
 from collections import deque
 from typing import Any
 
+from cfsr.defects import DefectCorrector
 from cfsr.display import auto_gain, to_display
 from cfsr.layout import Layout
 from cfsr.pool import FramePool, PoolError, TaskError
@@ -27,7 +28,7 @@ from cfsr_live.service.kernel_warmup import RECONSTRUCTION_NICE
 from cfsr_live.service.ladder import LadderSteps
 from cfsr_live.service.pacing import FrameTask, late_after_s, pick_tier, tiers_of
 from cfsr_live.service.priority import FramePriority
-from cfsr_live.service.schema import quality_code
+from cfsr_live.service.schema import DEFECT_STATES, DEFECTS_MASK, quality_code
 from cfsr_live.service.worker_messages import ConfigAnswer
 from cfsr_live.shm.ring import SpikeRing
 
@@ -181,7 +182,9 @@ class FrameWorker(LadderSteps):
         tiers = tiers_of(cfg)
         widest = max(tiers.values(), key=lambda m: sum(m.window))
         if self.rec is None or self.rec.layout != self.layout:
-            rec = StreamingReconstructor(widest, self.layout, slack=1024)
+            # hot and dead pixels, learnt from the stream, corrected before every method
+            rec = StreamingReconstructor(widest, self.layout, slack=1024,
+                                         defects=DefectCorrector(self.layout))
             if self.rec is not None:
                 self._gaps_base += self.rec.gaps
             self.rec = rec
@@ -256,7 +259,19 @@ class FrameWorker(LadderSteps):
             if time.monotonic() > budget:
                 break
         self.bump("steps_ingested", pushed)
+        self._put_defects()
         return pushed
+
+    def _put_defects(self) -> None:
+        """The defect map's state in the counters (the status's ``defects``)."""
+        d = self.rec.defects if self.rec is not None else None
+        if d is None:
+            return
+        st = d.state()
+        self.put("defects_state", DEFECT_STATES.index(st["state"]))
+        self.put("defects_hot", st["hot"])
+        self.put("defects_dead", st["dead"])
+        self.put("defects_confidence", st["confidence"])
 
     def _start_due(self, ahead_s: float) -> bool:
         """Whether a frame (or a stand-in) may start within ``ahead_s`` seconds: the pace
@@ -449,10 +464,14 @@ class FrameWorker(LadderSteps):
         g = float(gain) if gain else auto_gain(out.rate)
         img = to_display(out.rate, g)
         latency_ms = (time.monotonic() - arrival) * 1e3
+        masks = out.masks
+        d = self.rec.defects if self.rec is not None else None
+        if d is not None and d.enabled and (d.map.n_hot or d.map.n_dead):
+            masks = {**masks, DEFECTS_MASK: d.map.mask}
         self.slot.publish(
             step=t,
             image=img,
-            masks=out.masks,
+            masks=masks,
             method=method,
             gain=g,
             t_arrival=arrival,

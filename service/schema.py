@@ -72,6 +72,10 @@ __all__ = [
 METHOD_NAME_BYTES = 24
 #: the most masks a frame carries (one flag bit each in the WebSocket header)
 MAX_MASKS = 8
+#: the mask of the hot and dead pixels the worker corrects (cfsr.defects), after the methods'
+DEFECTS_MASK = "defects"
+#: the defect map's states, as the ``defects_state`` counter numbers them
+DEFECT_STATES = ("off", "learning", "ready", "given")
 #: bytes of one mask name in the frame slot's header
 MASK_NAME_BYTES = 16
 
@@ -127,6 +131,13 @@ class WorkerCounters:
     pool_nice: int = _counter(
         "nice value the reconstruction pool's processes compute frames at (the least nice of "
         "them; raised above acquisition's once every kernel is cached and loaded)", int)
+    defects_state: int = _counter(
+        "the hot/dead pixel map (cfsr.defects): 0 correction off, 1 learning from the stream, "
+        "2 ready, 3 given from outside", int)
+    defects_hot: int = _counter("pixels the map calls hot (corrected before the method)", int)
+    defects_dead: int = _counter("pixels the map calls dead (corrected before the method)", int)
+    defects_confidence: float = _counter(
+        "the map's confidence: steps counted over its warm-up of 2,000 (0..1)")
 
     @classmethod
     def from_record(cls, rec: np.void | np.ndarray) -> WorkerCounters:
@@ -150,7 +161,8 @@ def counter_meanings() -> dict[str, str]:
 
 def display_masks() -> tuple[str, ...]:
     """The names of every mask a registered method declares, in registration order, each
-    once (``("coarse", "fine", "motion")`` with the built-in methods)."""
+    once, then the defect map's (:data:`DEFECTS_MASK`): ``("coarse", "fine", "motion",
+    "defects")`` with the built-in methods."""
     from cfsr.methods import get_method
     from cfsr.methods import methods as registered
 
@@ -159,6 +171,8 @@ def display_masks() -> tuple[str, ...]:
         for m in get_method(name).masks:
             if m not in out:
                 out.append(m)
+    if DEFECTS_MASK not in out:
+        out.append(DEFECTS_MASK)
     if len(out) > MAX_MASKS:
         raise ValueError(f"methods declare {len(out)} masks; a frame carries {MAX_MASKS}")
     for m in out:
@@ -175,6 +189,8 @@ MASK_STYLE: dict[str, tuple[tuple[int, int, int], str]] = {
     "fine": ((255, 140, 26), "moving objects found by the fine distinction (MOG + DAISI "
                              "edges)"),
     "motion": ((200, 80, 255), "pixels SNM's spiking neurons call moving"),
+    "defects": ((255, 40, 40), "hot and dead pixels found in the stream; each took a "
+                               "neighbour's spikes before the method ran"),
 }
 _PALETTE = ((70, 210, 140), (232, 185, 74), (255, 107, 107), (120, 200, 255))
 #: opacity of a mask's colour over the image

@@ -250,6 +250,16 @@ class CompileProgress(BaseModel):
     )
 
 
+class DefectMapStatus(BaseModel):
+    """The hot/dead pixel map the worker corrects every method's spikes with (cfsr.defects)."""
+
+    state: str = Field("off", description="off (no correction), learning (from the stream, "
+                       "before its warm-up of 2,000 steps), ready, or given (from outside)")
+    hot: int = Field(0, description="pixels called hot: each takes a neighbour's spikes")
+    dead: int = Field(0, description="pixels called dead: each takes a neighbour's spikes")
+    confidence: float = Field(0.0, description="steps counted over the warm-up (0..1)")
+
+
 class WorkerStatus(BaseModel):
     alive: bool
     ready: bool
@@ -299,6 +309,8 @@ class WorkerStatus(BaseModel):
         "acquisition's (0) once every kernel is cached and loaded, so a busy machine takes CPU "
         "from frames, not from spike data (compiles run at 0: they are what a user waits for)",
     )
+    defects: DefectMapStatus = Field(default_factory=DefectMapStatus,
+                                     description="the hot/dead pixel map and its state")
 
 
 class WorkerReport(BaseModel):

@@ -25,9 +25,10 @@ from cfsr.layout import Layout
 from cfsr.procs import release_queue, stop_signals_blocked
 from cfsr_live.service.config import WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
-from cfsr_live.service.schema import QUALITY_TIERS, WorkerCounters
+from cfsr_live.service.schema import DEFECT_STATES, QUALITY_TIERS, WorkerCounters
 from cfsr_live.service.status import (
     CompileProgress,
+    DefectMapStatus,
     QualityShare,
     RateMeter,
     WorkerReport,
@@ -457,6 +458,11 @@ class WorkerSupervisor:
                 threads_per_worker=self.threads,
                 quality=self._quality(st),
                 reconstruction_nice=st.pool_nice,
+                defects=DefectMapStatus(
+                    state=DEFECT_STATES[st.defects_state]
+                    if 0 <= st.defects_state < len(DEFECT_STATES) else "off",
+                    hot=st.defects_hot, dead=st.defects_dead,
+                    confidence=st.defects_confidence),
                 fallback_method=RUNG_NAMES.get(int(st.fallback)) if first else None,
                 compiling=self.compiling if first else None,
             ),

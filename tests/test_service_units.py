@@ -35,9 +35,10 @@ def test_frame_slot_and_ws_message_roundtrip():
         assert np.array_equal(f.image, img) and set(f.masks) == {"coarse"}
         assert slot.read(since=f.seq) is None  # nothing newer
         names = slot.mask_names
-        assert names == ("coarse", "fine", "motion")  # every mask the methods declare
+        # every mask the methods declare, then the defect map's
+        assert names == ("coarse", "fine", "motion", "defects")
         msg = encode_ws_message(f, names)
-        assert len(msg) == 64 + 35 + 3 * 5  # header, image, three 35-bit planes
+        assert len(msg) == 64 + 35 + 4 * 5  # header, image, four 35-bit planes
         d = decode_ws_message(msg, names)
         assert d["step"] == 2**40 + 3 and d["method"] == "csr" and d["gain"] == 0.5
         assert np.array_equal(d["image"], img)
@@ -259,7 +260,7 @@ def test_mask_colours_and_names_are_checked(monkeypatch):
         assert schema.mask_color(name) == rgb
     other = schema.mask_color("edges")
     assert other in schema._PALETTE and schema.mask_color("edges") == other
-    assert schema.display_masks() == ("coarse", "fine", "motion")
+    assert schema.display_masks() == ("coarse", "fine", "motion", "defects")
 
     class _Declares:
         def __init__(self, masks):
@@ -271,13 +272,14 @@ def test_mask_colours_and_names_are_checked(monkeypatch):
         return schema.display_masks
 
     longest = "m" * (schema.MASK_NAME_BYTES - 1)
-    assert declared(longest, "a", "a")() == (longest, "a")  # each once
+    assert declared(longest, "a", "a")() == (longest, "a", "defects")  # each once
     for bad in ("m" * schema.MASK_NAME_BYTES, "", "maské"):
         with pytest.raises(ValueError, match="ASCII characters"):
             declared(bad)()
+    # the defect map's mask takes one of the frame's places
     with pytest.raises(ValueError, match="masks"):
-        declared(*(f"m{i}" for i in range(schema.MAX_MASKS + 1)))()
-    assert len(declared(*(f"m{i}" for i in range(schema.MAX_MASKS)))()) == schema.MAX_MASKS
+        declared(*(f"m{i}" for i in range(schema.MAX_MASKS)))()
+    assert len(declared(*(f"m{i}" for i in range(schema.MAX_MASKS - 1)))()) == schema.MAX_MASKS
 
 
 def test_web_process_does_not_load_the_worker():
