@@ -333,7 +333,11 @@ class RingReader:
             self.pos = max(0, head - ring.n_slots + 1)
         else:
             raise ValueError(f"start must be 'latest' or 'oldest', got {start!r}")
-        self._next_cum: int | None = None
+        # A reader that starts at the head owns every frame from there on: frames lapped
+        # before its first poll are lost to it, and counted (head is read before the frame
+        # count, which the producer advances first, so a write in between can only hide a
+        # loss, never invent one). Started behind the head, it counts from its first block.
+        self._next_cum: int | None = ring.frames_published if self.pos == head else None
         self._skip_from: int | None = None  # _next_cum when skip_to_latest last jumped
         self.skipped_frames = 0
         self.lost_frames = 0
