@@ -335,7 +335,9 @@ def _check_kernel(static, isi, match, out):  # pragma: no cover - numba
         for x in range(w):
             r = static[y, x]
             v = isi[y, x]
-            if r > 0 and abs(v - 1.0 / r) <= 1.0 + match / r:
+            # 1e-6 * v: r is float32, so 1/r of a rate whose interval is exactly one step from
+            # v's can land a rounding error past the bound (36 and 37 steps at 1/36.5)
+            if r > 0 and abs(v - 1.0 / r) <= 1.0 + match / r + 1e-6 * v:
                 out[y, x] = r
             else:
                 out[y, x] = np.float32(1.0 / v)
