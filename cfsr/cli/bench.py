@@ -8,6 +8,7 @@ Every figure is a ratio measured in this run: to real time (40,000 steps/s), to 
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import platform
@@ -279,111 +280,93 @@ def _uhsr_rows(path: Path, specs: list[str]) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------- CLI
 
 
+#: the benchmark's parts besides the accuracy grid: (flag, module, runner, printer, JSON name);
+#: each module is imported only when its part runs (numba, Dask, the service stay unloaded)
+_PARTS = (
+    ("throughput", "cfsr.cli._throughput", "throughput", "print_throughput", "throughput.json"),
+    ("defects", "cfsr.cli._defects", "defects_bench", "print_defects", "defects.json"),
+    ("compile", "cfsr.cli._compile", "compile_bench", "print_compile", "compile.json"),
+    ("tiers", "cfsr.cli._sweep", "tiers", "print_tiers", "tiers.json"),
+    ("dense", "cfsr.cli._sweep", "tiers", "print_tiers", "dense.json"),
+    ("sweep", "cfsr.cli._sweep", "sweep", "print_sweep", "sweep.json"),
+)
+
+
+def _part(args: argparse.Namespace) -> tuple[Any, Any, str]:
+    """The runner, the printer and the JSON name of the part ``args`` asks for (the accuracy
+    grid when no part flag is given)."""
+    for flag, module, runner, printer, name in _PARTS:
+        if getattr(args, flag, False):
+            mod = importlib.import_module(module)
+            return getattr(mod, runner), getattr(mod, printer), name
+    return _accuracy, lambda res: _print_accuracy(res, args), "accuracy.json"
+
+
+def _print_accuracy(res: dict[str, Any], args: argparse.Namespace) -> None:
+    """The accuracy grid's tables, and its Pareto plot where matplotlib is installed."""
+    from cfsr.bench import format_rows
+    from cfsr.cli._extras import install_hint
+    from cfsr.plots import have_matplotlib, plot_pareto
+
+    cols = [
+        ("method", "method", ""),
+        ("scene", "scene", ""),
+        ("ms_per_frame", "ms/frame", ".1f"),
+        ("display_rtf", "x RT@25fps", ".2f"),
+        ("psnr_all", "PSNR all", ".2f"),
+        ("psnr_motion", "PSNR motion", ".2f"),
+        ("ssim", "SSIM", ".3f"),
+        ("iou_coarse", "IoU coarse", ".2f"),
+        ("iou_fine", "IoU fine", ".2f"),
+    ]
+    print(format_rows(res["rows"], cols))
+    if res["noref"]:
+        print()
+        print(
+            format_rows(
+                res["noref"],
+                [
+                    ("method", "method", ""),
+                    ("scene", "scene", ""),
+                    ("std", "STD", ".2f"),
+                    ("cpbd", "CPBD", ".3f"),
+                    ("ms_per_frame", "ms/frame", ".1f"),
+                ],
+            )
+        )
+        print("CPBD rewards noise: read it beside STD and the PSNR table, never alone.")
+    if res["skipped"]:
+        print(f"skipped (not in this build): {', '.join(res['skipped'])}")
+    # the tables and the JSON are the results; the plot is extra (cfsr[bench])
+    if have_matplotlib():
+        png = plot_pareto(
+            [r for r in res["rows"] if not r["scene"].startswith("reds:")],
+            str(args.out / "pareto.png"),
+        )
+        print(f"plot: {png}")
+    else:
+        print(f"plot skipped: matplotlib is not installed ({install_hint('bench')})")
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from cfsr.bench import format_rows
-    from cfsr.cli._extras import install_hint, require_extra
-    from cfsr.plots import have_matplotlib, plot_pareto
+    from cfsr.cli._extras import require_extra
 
     # checked before the run, not after minutes of work
     if getattr(args, "cluster", None):
         require_extra("cluster")
     args.out.mkdir(parents=True, exist_ok=True)
+    runner, printer, name = _part(args)
     t_start = time.perf_counter()
     with tqdm(total=1, disable=args.quiet or None, file=sys.stderr, mininterval=0.5) as bar:
-        if args.throughput:
-            from cfsr.cli._throughput import throughput
-
-            res = throughput(args, bar)
-            name = "throughput.json"
-        elif args.defects:
-            from cfsr.cli._defects import defects_bench
-
-            res = defects_bench(args, bar)
-            name = "defects.json"
-        elif args.compile:
-            from cfsr.cli._compile import compile_bench
-
-            res = compile_bench(args, bar)
-            name = "compile.json"
-        elif args.tiers or args.dense:
-            from cfsr.cli._sweep import tiers
-
-            res = tiers(args, bar)
-            name = "tiers.json" if args.tiers else "dense.json"
-        elif args.sweep:
-            from cfsr.cli._sweep import sweep
-
-            res = sweep(args, bar)
-            name = "sweep.json"
-        else:
-            res = _accuracy(args, bar)
-            name = "accuracy.json"
+        res = runner(args, bar)
     res["seconds"] = time.perf_counter() - t_start
     res.setdefault("machine", _machine())
     _write_json(args.out / name, res)
     if args.json:
         _write_json(args.json, res)
-    if args.throughput:
-        from cfsr.cli._throughput import print_throughput
-
-        print_throughput(res)
-    elif args.defects:
-        from cfsr.cli._defects import print_defects
-
-        print_defects(res)
-    elif args.compile:
-        from cfsr.cli._compile import print_compile
-
-        print_compile(res)
-    elif args.tiers or args.dense:
-        from cfsr.cli._sweep import print_tiers
-
-        print_tiers(res)
-    elif args.sweep:
-        from cfsr.cli._sweep import print_sweep
-
-        print_sweep(res)
-    else:
-        cols = [
-            ("method", "method", ""),
-            ("scene", "scene", ""),
-            ("ms_per_frame", "ms/frame", ".1f"),
-            ("display_rtf", "x RT@25fps", ".2f"),
-            ("psnr_all", "PSNR all", ".2f"),
-            ("psnr_motion", "PSNR motion", ".2f"),
-            ("ssim", "SSIM", ".3f"),
-            ("iou_coarse", "IoU coarse", ".2f"),
-            ("iou_fine", "IoU fine", ".2f"),
-        ]
-        print(format_rows(res["rows"], cols))
-        if res["noref"]:
-            print()
-            print(
-                format_rows(
-                    res["noref"],
-                    [
-                        ("method", "method", ""),
-                        ("scene", "scene", ""),
-                        ("std", "STD", ".2f"),
-                        ("cpbd", "CPBD", ".3f"),
-                        ("ms_per_frame", "ms/frame", ".1f"),
-                    ],
-                )
-            )
-            print("CPBD rewards noise: read it beside STD and the PSNR table, never alone.")
-        if res["skipped"]:
-            print(f"skipped (not in this build): {', '.join(res['skipped'])}")
-        # the tables and the JSON are the results; the plot is extra (cfsr[bench])
-        if have_matplotlib():
-            png = plot_pareto(
-                [r for r in res["rows"] if not r["scene"].startswith("reds:")],
-                str(args.out / "pareto.png"),
-            )
-            print(f"plot: {png}")
-        else:
-            print(f"plot skipped: matplotlib is not installed ({install_hint('bench')})")
+    printer(res)
     print(
         f"JSON: {args.out / name}"
         + (f" and {args.json}" if args.json else "")
