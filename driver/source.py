@@ -21,7 +21,8 @@ from __future__ import annotations
 import abc
 import enum
 import time
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, fields
 from typing import Any, TypeVar
 
 import numpy as np
@@ -34,11 +35,13 @@ __all__ = [
     "CameraControl",
     "Facility",
     "ReplayControl",
+    "ReplayMode",
     "Source",
     "SourceDisconnected",
     "SourceEnded",
     "SourceError",
     "SourceInfo",
+    "SourceCounters",
     "SourceState",
 ]
 
@@ -78,7 +81,13 @@ class SourceState(enum.StrEnum):
 
 @dataclass(frozen=True)
 class SourceInfo:
-    """What a source is: kind (``usb``/``replay``/``simulator``), geometry and rate."""
+    """What a source is: its kind, geometry and rate.
+
+    ``kind`` is the name the source registry (``cfsr_live.service.sources``, entry-point group
+    ``cfsr.sources``) knows the kind by: ``usb``, ``replay``, ``demo``, ``sim``, or a camera
+    package's own. The status and a recording's sidecar show this name, so it is the one
+    vocabulary of kinds.
+    """
 
     kind: str
     name: str
@@ -99,6 +108,34 @@ class SourceInfo:
             "max_block_frames": self.max_block_frames,
             "serial": self.serial,
         }
+
+
+@dataclass(frozen=True)
+class SourceCounters:
+    """What a source counted since it was made, in frames (a snapshot: :meth:`Source.counters`
+    makes a new one each call, so a reader in another thread sees figures of one moment).
+
+    A field is ``None`` where the source lacks what it counts: a file has no link to lose
+    frames on, a camera is never paced by the host. The status's ``drops`` read the two
+    loss fields, whatever the kind. A source with more to count subclasses this record (a
+    frozen dataclass with fields of its own, all with defaults): the USB camera's
+    :class:`cfsr_live.driver.usb.UsbCounters` adds its link's events.
+    """
+
+    #: frames handed to the reader
+    frames_delivered: int = 0
+    #: frames lost on the link before they reached the host (index gaps in the headers): the
+    #: status's ``drops.usb``
+    lost_frames: int | None = None
+    #: frames a paced replay skipped to stay on schedule: the status's ``drops.replay``
+    replay_behind_frames: int | None = None
+    #: times a looping replay started again
+    loops: int | None = None
+
+    def as_dict(self) -> dict[str, int]:
+        """The fields the source has (not ``None``), by name: the status's
+        ``source.counters``."""
+        return {f.name: v for f in fields(self) if (v := getattr(self, f.name)) is not None}
 
 
 @dataclass
@@ -173,6 +210,30 @@ class ReplayControl(Facility):
     def set_loop(self, loop: bool) -> None: ...
 
 
+class ReplayMode(enum.StrEnum):
+    """How a replayed or generated source delivers its frames (``ReplayControl.state()``'s
+    ``mode``, ``cfsr serve --replay-mode``)."""
+
+    #: on the sensor's schedule (25 us a step over the speed); a reader that falls behind
+    #: loses frames, counted as ``replay_behind_frames``, as a camera's overflowing FIFO would
+    PACED = "paced"
+    #: as fast as the reader reads, nothing skipped (tests, re-recording): deterministic
+    UNPACED = "unpaced"
+
+    @classmethod
+    def of(cls, value: str) -> ReplayMode:
+        """The mode named ``value``; ``fast``, its former name, still works with a
+        DeprecationWarning (it read like CFSR's fast tier). ValueError naming the modes."""
+        if value == "fast":
+            warnings.warn("replay mode 'fast' is now named 'unpaced'", DeprecationWarning,
+                          stacklevel=3)
+            return cls.UNPACED
+        try:
+            return cls(value)
+        except ValueError:
+            raise ValueError(f"replay mode must be 'paced' or 'unpaced', got {value!r}") from None
+
+
 class CameraControl(Facility):
     """Controls only a live camera has (device info, stream start/stop, device counters)."""
 
@@ -227,15 +288,16 @@ class Source(abc.ABC):
     def capabilities(self) -> list[str]:
         return sorted(f.name for f in self._facilities.values())
 
-    def counters(self) -> dict[str, int]:
-        """Cumulative counters (frames delivered, frames lost, errors by kind)."""
-        return {}
+    def counters(self) -> SourceCounters:
+        """What the source counted so far (frames delivered, lost, skipped; a subclass of
+        :class:`SourceCounters` adds its own events)."""
+        return SourceCounters()
 
     def describe(self) -> dict[str, Any]:
         d = self.info.to_dict()
         d["state"] = self.state.value
         d["capabilities"] = self.capabilities()
-        d["counters"] = self.counters()
+        d["counters"] = self.counters().as_dict()
         d["last_error"] = self.last_error
         return d
 

@@ -25,6 +25,7 @@ import array
 import errno
 import logging
 import time
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -36,13 +37,14 @@ from cfsr_live.driver.source import (
     BlockFlags,
     CameraControl,
     Source,
+    SourceCounters,
     SourceDisconnected,
     SourceError,
     SourceInfo,
     SourceState,
 )
 
-__all__ = ["UsbCameraSource", "DISCONNECT_ERRNOS"]
+__all__ = ["UsbCameraSource", "UsbCounters", "DISCONNECT_ERRNOS"]
 
 log = logging.getLogger("cfsr.usb")
 
@@ -61,6 +63,28 @@ class _CameraControl(CameraControl):
 
     def device_status(self) -> dict[str, Any]:
         return dict(self._s._status_cache)
+
+
+@dataclass(frozen=True)
+class UsbCounters(SourceCounters):
+    """The camera's counters: frames (delivered, lost on the link) and the link's events,
+    each a count since the source was made (the module's docstring says what each recovers
+    from)."""
+
+    lost_frames: int | None = 0  #: frames missing from the header indices (a camera has a link)
+    blocks: int = 0  #: protocol blocks delivered
+    timeouts: int = 0  #: bulk reads that timed out (errno 110)
+    stalls: int = 0  #: halts cleared (errno 32)
+    overflows: int = 0  #: babble/overflow reads (errno 75)
+    short_blocks: int = 0  #: blocks shorter than their header says
+    crc_errors: int = 0  #: blocks dropped for a payload CRC mismatch
+    bad_headers: int = 0  #: reads whose header did not parse or check
+    resyncs: int = 0  #: re-alignments on a header found in a read
+    disconnects: int = 0  #: times the device went away (errno 19 / 5)
+    reconnects: int = 0  #: sessions after the first
+    connect_failures: int = 0  #: attempts to open the device that failed
+    errors: int = 0  #: other USB errors
+    sessions: int = 0  #: successful opens
 
 
 class UsbCameraSource(Source):
@@ -122,26 +146,7 @@ class UsbCameraSource(Source):
         self._status_cache: dict[str, Any] = {"connected": False}
         self._status_at = 0.0
         self._opened = False
-        self._c = {
-            k: 0
-            for k in (
-                "blocks",
-                "frames_delivered",
-                "lost_frames",
-                "timeouts",
-                "stalls",
-                "overflows",
-                "short_blocks",
-                "crc_errors",
-                "bad_headers",
-                "resyncs",
-                "disconnects",
-                "reconnects",
-                "connect_failures",
-                "errors",
-                "sessions",
-            )
-        }
+        self._c = UsbCounters()
 
     # -- lifecycle -----------------------------------------------------------------------------
     def open(self) -> None:
@@ -168,8 +173,14 @@ class UsbCameraSource(Source):
         self._release()
         self.state = SourceState.CLOSED
 
-    def counters(self) -> dict[str, int]:
-        return dict(self._c)
+    def counters(self) -> UsbCounters:
+        return self._c
+
+    def _count(self, **add: int) -> None:
+        """Add ``add`` (field name -> frames or events) to the counters: a new frozen record,
+        so a reader in another thread sees a block's figures together or not at all."""
+        c = self._c
+        self._c = replace(c, **{k: getattr(c, k) + n for k, n in add.items()})
 
     # -- connection ------------------------------------------------------------------------------
     def _find(self):
@@ -260,15 +271,13 @@ class UsbCameraSource(Source):
             self._ctrl_out(P.REQ_START, fpb)
         except usb.core.USBError as exc:
             self._release()
-            self._c["connect_failures"] += 1
+            self._count(connect_failures=1)
             raise SourceDisconnected(f"cannot open the USB camera: {exc}") from exc
         except SourceError:
             self._release()
-            self._c["connect_failures"] += 1
+            self._count(connect_failures=1)
             raise
-        if self._c["sessions"]:
-            self._c["reconnects"] += 1
-        self._c["sessions"] += 1
+        self._count(sessions=1, reconnects=1 if self._c.sessions else 0)
         self._resync = False
         self._delay = self.backoff[0]
         self.state = SourceState.STREAMING
@@ -295,7 +304,7 @@ class UsbCameraSource(Source):
         self._delay = min(self.backoff[1], self._delay * 2)
 
     def _disconnected(self, exc: Exception) -> None:
-        self._c["disconnects"] += 1
+        self._count(disconnects=1)
         self.last_error = f"camera disconnected: {exc}"
         log.warning("%s; reconnecting", self.last_error)
         self._release()
@@ -327,7 +336,7 @@ class UsbCameraSource(Source):
         try:
             n = self._dev.read(self._ep, self._buf, ms)
         except usb.core.USBTimeoutError:
-            self._c["timeouts"] += 1
+            self._count(timeouts=1)
             return None
         except usb.core.USBError as exc:
             return self._on_error(exc)
@@ -340,7 +349,7 @@ class UsbCameraSource(Source):
             self._disconnected(exc)
             return None
         if code == errno.EPIPE:
-            self._c["stalls"] += 1
+            self._count(stalls=1)
             try:
                 self._dev.clear_halt(self._ep)
             except self._usb.core.USBError as e2:
@@ -348,7 +357,7 @@ class UsbCameraSource(Source):
                     self._disconnected(e2)
             return None
         if code == errno.EOVERFLOW:
-            self._c["overflows"] += 1
+            self._count(overflows=1)
             self._resync = True
             return None
         if code == errno.ENOMEM:
@@ -356,7 +365,7 @@ class UsbCameraSource(Source):
                 f"the kernel refused a {self.block_bytes}-byte read (usbfs memory limit): "
                 "use fewer frames per block"
             )
-        self._c["errors"] += 1
+        self._count(errors=1)
         self.last_error = str(exc)
         return None
 
@@ -390,14 +399,14 @@ class UsbCameraSource(Source):
         hdr = P.parse_header(v[:64]) if n >= 64 else None
         if hdr is None or hdr.block_bytes != self.block_bytes:
             if not self._resync:
-                self._c["bad_headers"] += 1
+                self._count(bad_headers=1)
             self._resync = False
             off = self._find_header(v, n)
             if off is None:
                 self._resync = True  # keep looking in the next read
                 return None
             # the stream is misaligned by ``off`` bytes: complete the block and carry on
-            self._c["resyncs"] += 1
+            self._count(resyncs=1)
             keep = n - off
             v[:keep] = v[off:n].copy()
             need = self.block_bytes - keep
@@ -416,15 +425,15 @@ class UsbCameraSource(Source):
         self._resync = False
         lay = self.info.layout
         if hdr.frame_bytes != lay.frame_bytes or hdr.frame_count > hdr.frames_per_block:
-            self._c["bad_headers"] += 1
+            self._count(bad_headers=1)
             return None
         plen = hdr.frame_count * hdr.frame_bytes
         if n < P.HEADER_BYTES + plen:
-            self._c["short_blocks"] += 1
+            self._count(short_blocks=1)
             return None
         payload = v[P.HEADER_BYTES : P.HEADER_BYTES + plen]
         if P.payload_crc32(payload) != hdr.payload_crc:
-            self._c["crc_errors"] += 1
+            self._count(crc_errors=1)
             return None
         flags = BlockFlags.NONE
         lost = 0
@@ -433,14 +442,13 @@ class UsbCameraSource(Source):
             if first > self._expect:
                 lost = first - self._expect
                 flags |= BlockFlags.LOSS
-                self._c["lost_frames"] += lost
+                self._count(lost_frames=lost)
             elif first < self._expect:
                 flags |= BlockFlags.DISCONTINUITY  # the device restarted its counter
         else:
             flags |= BlockFlags.DISCONTINUITY
         self._expect = first + hdr.frame_count
-        self._c["blocks"] += 1
-        self._c["frames_delivered"] += hdr.frame_count
+        self._count(blocks=1, frames_delivered=hdr.frame_count)
         return Block(
             index=first,
             data=payload.reshape(hdr.frame_count, hdr.frame_bytes),

@@ -13,9 +13,10 @@ Seek stays O(1) (frame ``n`` is at byte ``n * frame_bytes``). Two modes:
     consumer of ``read_block`` falls more than ``max_lag_s`` behind, the device skips ahead
     like a camera whose FIFO overflowed: the index jumps and the skipped frames are counted
     (``replay_behind``).
-``fast``
+``unpaced``
     Deterministic, as fast as the consumer reads (no pacing, nothing skipped); used by tests
-    together with a blocking ring so every frame reaches the worker.
+    together with a blocking ring so every frame reaches the worker. (Formerly ``fast``,
+    still accepted with a DeprecationWarning: the name read like CFSR's fast quality tier.)
 
 The block index is the device's step clock: it keeps counting across loops (the content
 wraps, the clock does not), jumps when frames are skipped, and a seek is flagged
@@ -41,7 +42,9 @@ from cfsr_live.driver.source import (
     Block,
     BlockFlags,
     ReplayControl,
+    ReplayMode,
     Source,
+    SourceCounters,
     SourceEnded,
     SourceInfo,
     SourceState,
@@ -110,8 +113,8 @@ class ReplayDevice(Source):
         Playback speed relative to real time (1.0 = 40,000 steps/s).
     loop : bool
         Start again at ``start`` after ``end``.
-    mode : {"paced", "fast"}
-        See the module notes.
+    mode : {"paced", "unpaced"}
+        See the module notes (:class:`~cfsr_live.driver.source.ReplayMode`).
     block_frames : int
         Frames per block (256 = 6.4 ms at 40 kHz).
     start, end : int
@@ -120,7 +123,8 @@ class ReplayDevice(Source):
         In paced mode, how far behind schedule (seconds of wall time) the reader may fall
         before frames are skipped.
     kind : str
-        ``replay`` (default) or ``simulator`` for synthetic in-memory recordings.
+        The source kind's name in the registry (``SourceInfo.kind``): ``replay`` (default),
+        ``demo``, ``sim`` for synthetic in-memory recordings, or a camera package's.
     clock : callable
         Monotonic clock in seconds (tests pass a fake one to check pacing exactly).
     """
@@ -131,7 +135,7 @@ class ReplayDevice(Source):
         *,
         speed: float = 1.0,
         loop: bool = True,
-        mode: str = "paced",
+        mode: ReplayMode | str = ReplayMode.PACED,
         block_frames: int = 256,
         start: int = 0,
         end: int | None = None,
@@ -146,8 +150,7 @@ class ReplayDevice(Source):
             from cfsr.datfile import read_spikes
 
             recording = read_spikes(recording)
-        if mode not in ("paced", "fast"):
-            raise ValueError(f"mode must be 'paced' or 'fast', got {mode!r}")
+        mode = ReplayMode.of(mode)
         if block_frames < 1:
             raise ValueError(f"block_frames must be >= 1, got {block_frames}")
         n = recording.n_frames
@@ -272,12 +275,11 @@ class ReplayDevice(Source):
                 "rate_hz": self.info.rate_hz,
             }
 
-    def counters(self) -> dict[str, int]:
-        return {
-            "frames_delivered": self.frames_delivered,
-            "replay_behind_frames": self.frames_skipped,
-            "loops": self._loops,
-        }
+    def counters(self) -> SourceCounters:
+        """Frames delivered, skipped by the paced schedule, and loops (a file has no link:
+        ``lost_frames`` is None)."""
+        return SourceCounters(frames_delivered=self.frames_delivered,
+                              replay_behind_frames=self.frames_skipped, loops=self._loops)
 
     # -- data -----------------------------------------------------------------------------
     def read_block(self, timeout: float = 0.5) -> Block | None:
@@ -301,7 +303,7 @@ class ReplayDevice(Source):
                     self._cond.wait(remaining)
                     continue
                 n = self._next_len()
-                if self.mode == "fast":
+                if self.mode is ReplayMode.UNPACED:
                     return self._emit(n, 0)
                 rate = self.info.rate_hz * self._speed
                 due = self._t_ref + (self._clock + n - self._clock_ref) / rate

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from cfsr.datfile import SpikeFileError, file_kind, read_sidecar
+from cfsr.layout import STEP_RATE_HZ, Layout
 from cfsr_live.driver.source import Source
 from cfsr_live.service import sources
 from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, Settings, SourceSpec
@@ -119,9 +121,6 @@ class SourceCatalog:
 
     def describe_file(self, path: Path, id_: str, kind: str) -> CatalogEntry | None:
         """Describe ``path`` from ``stat`` and its sidecar; None if it vanished meanwhile."""
-        from cfsr.datfile import SpikeFileError, file_kind, read_sidecar
-        from cfsr.layout import STEP_RATE_HZ, Layout
-
         try:
             st = path.stat()
         except FileNotFoundError:
@@ -284,5 +283,4 @@ class SourceCatalog:
         """A new (not yet opened) source for ``spec``, made by its kind."""
         kind = sources.get(spec.kind)
         say = lambda m: log.warning("%s", m)  # noqa: E731 - the demo's first simulation
-        src = kind.open(spec, sources.OpenOptions.from_settings(self.settings, say=say))
-        return sources.opened(kind, src)
+        return kind.open(spec, sources.OpenOptions.from_settings(self.settings, say=say))

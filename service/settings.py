@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from cfsr.datfile import MIN_GAIN
+from cfsr_live.driver.source import ReplayMode
 
 #: open connections (HTTP and WebSocket) at most, by default (service/httpproto.py lowers it
 #: under the open-file limit); here so that the parser of `cfsr serve` needs no uvicorn
@@ -55,6 +56,7 @@ __all__ = [
 def _default_workers() -> int:
     """One single-threaded reconstruction process per usable core (measured: on 2 cores two
     processes of one thread give 2-3x the frames of one process of two threads)."""
+    # deferred: keeps the process pool (cfsr.pool) out of the web process; the worker starts it
     from cfsr.pool import default_workers
 
     return default_workers(1)
@@ -103,6 +105,7 @@ class SourceSpec:
     @property
     def id(self) -> str:
         """The listing id of this source (``GET /api/sources``), as its kind names it."""
+        # deferred: a cycle (cfsr_live.service.sources imports SourceSpec from here)
         from cfsr_live.service.sources import get
 
         return get(self.kind).spec_id(self)
@@ -117,7 +120,9 @@ class Settings:
     source: SourceSpec = field(default_factory=SourceSpec)
     speed: float = 1.0
     loop: bool = True
-    replay_mode: str = "paced"  # "fast": deterministic, as fast as the worker consumes
+    #: a recording's pacing: ``paced``, or ``unpaced``: deterministic, as fast as the worker
+    #: consumes (a name is made a :class:`~cfsr_live.driver.source.ReplayMode` at once)
+    replay_mode: ReplayMode = ReplayMode.PACED
     block_frames: int = 256
     ring_seconds: float = 0.25
     #: the ring's size cap, bytes (default :data:`cfsr_live.shm.ring.DEFAULT_MAX_BYTES`, 1 GiB)
@@ -150,6 +155,7 @@ class Settings:
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).expanduser()
+        self.replay_mode = ReplayMode.of(self.replay_mode)
         if self.token is not None and not self.token.strip():
             # a token of blanks is one an attacker guesses first (and "--token ' '" is a
             # slip, not a choice): refused on every bind, not only where one is required

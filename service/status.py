@@ -26,15 +26,16 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from pydantic import BaseModel, Field
 
+from cfsr_live.driver.source import CameraControl, ReplayControl
 from cfsr_live.service.kernel_warmup import KernelStatus
 
 if TYPE_CHECKING:
     from cfsr_live.driver.acquisition import Acquisition
-    from cfsr_live.driver.source import Source
+    from cfsr_live.driver.source import Source, SourceCounters
     from cfsr_live.shm.ring import SpikeRing
 
 __all__ = [
@@ -45,6 +46,7 @@ __all__ = [
     "RecordStatus",
     "ReplayState",
     "RingStatus",
+    "SourceLosses",
     "SourceReport",
     "SourceStatus",
     "StatusModel",
@@ -52,7 +54,6 @@ __all__ = [
     "WorkerStatus",
     "real_time_factor",
     "ring_status",
-    "source_losses",
     "source_report",
 ]
 
@@ -127,8 +128,24 @@ class SourceReport(BaseModel):
     status: SourceStatus
     link_lost_frames: int = Field(
         0, description="frames lost on the source's link to the host, a USB camera's or any "
-        "other kind's (the counter its source kind names)")
+        "other kind's (its counters' lost_frames)")
     replay_behind_frames: int = Field(0, description="frames a paced replay skipped")
+
+
+class SourceLosses(NamedTuple):
+    """Frames a source lost: on its link to the host (the status's ``drops.usb``) and skipped
+    by a paced replay (``drops.replay``)."""
+
+    link: int = 0
+    paced: int = 0
+
+    @classmethod
+    def of(cls, counters: SourceCounters) -> SourceLosses:
+        """The losses in a source's ``counters`` (a field the source lacks counts 0)."""
+        return cls(counters.lost_frames or 0, counters.replay_behind_frames or 0)
+
+    def plus(self, other: SourceLosses) -> SourceLosses:
+        return SourceLosses(self.link + other.link, self.paced + other.paced)
 
 
 def source_report(
@@ -140,15 +157,13 @@ def source_report(
     shape ``GET /api/status`` always had); a camera adds its device status, or the error
     that reading it raised (the camera may be gone right now).
     """
-    from cfsr_live.driver.source import CameraControl, ReplayControl
-
     if src is None:
         status = SourceStatus(id=source_id, kind=None, name=None, state=None, rate_hz=rate_hz,
                               counters=acq.stats() if acq else {},
                               last_error=acq.last_error if acq else None)
         return SourceReport(status=status)
     own = src.counters()
-    counters: dict[str, Any] = {**own, **(acq.stats() if acq else {})}
+    counters: dict[str, Any] = {**own.as_dict(), **(acq.stats() if acq else {})}
     cam = src.get_facility(CameraControl)
     if cam is not None:
         try:
@@ -169,21 +184,8 @@ def source_report(
         replay=None if ctl is None else ReplayState.model_validate(ctl.state()),
         last_error=src.last_error or (acq.last_error if acq else None),
     )
-    link, paced = source_losses(src, own)
+    link, paced = SourceLosses.of(own)
     return SourceReport(status=status, link_lost_frames=link, replay_behind_frames=paced)
-
-
-def source_losses(src: Source, counters: dict[str, Any] | None = None) -> tuple[int, int]:
-    """Frames ``src`` lost: (on its link, skipped by a paced replay), read from its own
-    ``counters`` (default: ``src.counters()``) under the names its source kind declares
-    (:attr:`cfsr_live.service.sources.SourceKind.link_loss_counter`; a camera package names
-    its own)."""
-    from cfsr_live.service.sources import SourceKind, kind_of
-
-    own = src.counters() if counters is None else counters
-    kind = kind_of(src) or SourceKind()
-    link, paced = kind.link_loss_counter, kind.pacing_loss_counter
-    return (int(own.get(link, 0)) if link else 0, int(own.get(paced, 0)) if paced else 0)
 
 
 # -- the ring -----------------------------------------------------------------------------------
@@ -193,7 +195,8 @@ class RingStatus(BaseModel):
     slot_frames: int = Field(description="frames per block")
     capacity_s: float = Field(description="seconds of sensor data the ring holds")
     frames_published: int = Field(description="frames written into this and earlier rings")
-    blocking: bool = Field(description="the producer waits for the worker (replay mode fast)")
+    blocking: bool = Field(description="the producer waits for the worker (replay mode "
+                           "unpaced)")
 
 
 def ring_status(ring: SpikeRing | None, frames_before: int, rate_hz: float) -> RingStatus:
@@ -258,6 +261,8 @@ class DefectMapStatus(BaseModel):
     hot: int = Field(0, description="pixels called hot: each takes a neighbour's spikes")
     dead: int = Field(0, description="pixels called dead: each takes a neighbour's spikes")
     confidence: float = Field(0.0, description="steps counted over the warm-up (0..1)")
+    gain: bool = Field(False, description="a flat-field calibration's per-pixel gain "
+                       "(threshold spread) is divided out of every method's output")
 
 
 class WorkerStatus(BaseModel):

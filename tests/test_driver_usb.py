@@ -87,7 +87,7 @@ def test_enumerate_configure_and_byte_exact(rec):
     blocks = _read(src, 20, rec)
     assert [b.index for b in blocks] == list(range(0, 20 * 64, 64))
     assert blocks[0].flags & BlockFlags.DISCONTINUITY
-    assert src.counters()["lost_frames"] == 0
+    assert src.counters().lost_frames == 0
     assert model.events[0] == "start 64"
     src.close()
     assert model.events[-1] == "stop"
@@ -101,15 +101,15 @@ def test_fault_recovery_and_loss_count(rec, fault):
     model.inject(fault, seconds=0.4)
     blocks = _read(src, 6, rec)
     c = src.counters()
-    assert c["lost_frames"] == model.expected_loss
+    assert c.lost_frames == model.expected_loss
     expected = {"stall": 64, "overflow": 64, "short": 64, "corrupt": 64, "corrupt_header": 64,
                 "timeout": 0}[fault]
-    assert c["lost_frames"] == expected, c
+    assert c.lost_frames == expected, c
     key = {"stall": "stalls", "overflow": "overflows", "short": "short_blocks",
            "corrupt": "crc_errors", "corrupt_header": "bad_headers", "timeout": "timeouts"}[fault]
-    assert c[key] >= 1, c
+    assert getattr(c, key) >= 1, c
     if fault == "overflow":
-        assert c["resyncs"] == 1
+        assert c.resyncs == 1
     if expected:
         assert any(b.flags & BlockFlags.LOSS for b in blocks)
     src.close()
@@ -128,11 +128,11 @@ def test_unplug_and_replug_reconnects_with_backoff(rec, kind):
 
     wait_until(noticed, 5, lambda: f"the unplug to be noticed (state {src.state}, "
                f"counters {src.counters()})", interval=0)
-    assert src.counters()["disconnects"] == 1
+    assert src.counters().disconnects == 1
     blocks = _read(src, 4, rec)
     c = src.counters()
-    assert c["reconnects"] == 1 and c["connect_failures"] >= 1
-    assert c["lost_frames"] == model.expected_loss
+    assert c.reconnects == 1 and c.connect_failures >= 1
+    assert c.lost_frames == model.expected_loss
     assert blocks[0].index >= 2 * 64
     src.close()
 
@@ -148,7 +148,7 @@ def test_paced_stream_fifo_overflow_is_counted(rec):
     _read(src, 3, rec)
     c = src.counters()
     assert model.dropped_total > 0
-    assert c["lost_frames"] == model.expected_loss
+    assert c.lost_frames == model.expected_loss
     src.close()
 
 
@@ -160,7 +160,7 @@ def test_no_camera_keeps_trying(rec):
     assert src.state in (SourceState.BACKOFF, SourceState.DISCONNECTED)
     for _ in range(5):
         assert src.read_block(0.05) is None
-    assert src.counters()["connect_failures"] >= 2
+    assert src.counters().connect_failures >= 2
     assert "no USB device" in (src.last_error or "")
     src.close()
 
@@ -174,7 +174,7 @@ def test_preloaded_backend_serves_consecutive_byte_exact_blocks(rec):
     blocks = _read(src, 400, rec)  # two laps and more: the headers are rewritten
     assert [b.index for b in blocks] == list(range(0, 400 * 64, 64))
     c = src.counters()
-    assert c["lost_frames"] == 0 and c["crc_errors"] == 0 and c["bad_headers"] == 0
+    assert c.lost_frames == 0 and c.crc_errors == 0 and c.bad_headers == 0
     assert backend.served == 400 and backend.copy_s > 0
     src.close()
 

@@ -123,7 +123,7 @@ def test_rewritten_shorter_file_then_controls_do_not_revive_it(tmp_path):
         import json
         from cfsr_live.driver.source import ReplayControl, SourceEnded
         from cfsr_live.replay.device import ReplayDevice
-        dev = ReplayDevice({str(dat)!r}, mode="fast", loop=True, block_frames=256)
+        dev = ReplayDevice({str(dat)!r}, mode="unpaced", loop=True, block_frames=256)
         dev.open()
         first = dev.read_block(0).data.copy()
         # `cp short.dat scene.dat`: truncate to 0 and write the shorter content in place
@@ -143,7 +143,7 @@ def test_rewritten_shorter_file_then_controls_do_not_revive_it(tmp_path):
         except SourceEnded:
             revived = False
         print(json.dumps({{"errs": errs, "state": dev.state.value, "revived": revived,
-                          "delivered": dev.counters()["frames_delivered"],
+                          "delivered": dev.counters().frames_delivered,
                           "describe": dev.describe()["last_error"]}}))
     """)
     out = _last_json(r)
@@ -157,7 +157,7 @@ def test_replay_reads_are_byte_exact_and_do_not_alias(tmp_path):
     # the bounds-checked reads return the file's bytes; each block owns its array
     dat = _pattern(tmp_path / "p.dat", 700)
     rec = read_dat(dat)
-    dev = ReplayDevice(dat, mode="fast", loop=True, block_frames=256)
+    dev = ReplayDevice(dat, mode="unpaced", loop=True, block_frames=256)
     dev.open()
     blocks = [dev.read_block(0) for _ in range(4)]
     assert [b.n_frames for b in blocks] == [256, 256, 188, 256]
@@ -198,14 +198,14 @@ def test_one_frame_loop_paces_in_whole_blocks(tmp_path):
     assert all(b.n_frames == 256 for b in blocks)
     assert [b.index for b in blocks] == [256 * i for i in range(len(blocks))]
     assert np.array_equal(blocks[3].data, np.repeat(frame, 256, axis=0))
-    assert dev.counters()["loops"] == 256 * len(blocks)
-    assert dev.counters()["replay_behind_frames"] == 0
+    assert dev.counters().loops == 256 * len(blocks)
+    assert dev.counters().replay_behind_frames == 0
 
 
 def test_short_loop_longer_than_one_frame(tmp_path):
     dat = _pattern(tmp_path / "few.dat", 100)
     rec = read_dat(dat)
-    dev = ReplayDevice(dat, mode="fast", loop=True, block_frames=256)
+    dev = ReplayDevice(dat, mode="unpaced", loop=True, block_frames=256)
     dev.open()
     b = dev.read_block(0)
     assert b.n_frames == 200  # two whole passes fit in a block
@@ -232,7 +232,7 @@ def test_one_frame_loop_does_not_spin_a_real_clock(tmp_path):
 
 def test_loop_set_after_the_end_resumes(tmp_path):
     dat = _pattern(tmp_path / "a.dat", 300)
-    dev = ReplayDevice(dat, mode="fast", loop=False, block_frames=128)
+    dev = ReplayDevice(dat, mode="unpaced", loop=False, block_frames=128)
     dev.open()
     for _ in range(3):
         dev.read_block(0)

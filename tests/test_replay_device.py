@@ -48,7 +48,7 @@ def _drain(dev, limit=10_000):
 
 def test_fast_mode_is_byte_exact_and_ends(dat):
     rec = read_dat(dat)
-    dev = ReplayDevice(dat, mode="fast", loop=False, block_frames=96)
+    dev = ReplayDevice(dat, mode="unpaced", loop=False, block_frames=96)
     with dev:
         blocks = _drain(dev)
         assert dev.state == SourceState.STREAMING
@@ -64,7 +64,7 @@ def test_fast_mode_is_byte_exact_and_ends(dat):
 
 def test_loop_keeps_the_clock_running(dat):
     rec = read_dat(dat)
-    dev = ReplayDevice(dat, mode="fast", loop=True, block_frames=300)
+    dev = ReplayDevice(dat, mode="unpaced", loop=True, block_frames=300)
     dev.open()
     blocks = [dev.read_block(0) for _ in range(6)]
     # 300, 300, 300, 100 (end of file), then the content wraps while the index continues
@@ -76,7 +76,7 @@ def test_loop_keeps_the_clock_running(dat):
 
 def test_seek_pause_step(dat):
     rec = read_dat(dat)
-    dev = ReplayDevice(dat, mode="fast", block_frames=50)
+    dev = ReplayDevice(dat, mode="unpaced", block_frames=50)
     dev.open()
     ctl = dev.get_facility(ReplayControl)
     assert ctl is not None
@@ -129,7 +129,7 @@ def test_paced_behind_schedule_skips_and_counts(dat):
     b = dev.read_block(0)
     assert b.flags & BlockFlags.LOSS
     assert b.lost_before > 0 and b.index == 40 + b.lost_before
-    assert dev.counters()["replay_behind_frames"] == b.lost_before
+    assert dev.counters().replay_behind_frames == b.lost_before
     # after the skip it is back on schedule: nothing more is due
     assert dev.read_block(0) is None or dev.read_block(0) is None
 
@@ -140,6 +140,30 @@ def test_capability_discovery_replay_has_no_camera(dat):
     assert dev.get_facility(ReplayControl) is not None
     assert dev.capabilities() == ["replay"]
     assert dev.describe()["kind"] == "replay"
+
+
+def test_unpaced_mode_and_its_former_name(dat, capsys):
+    """The mode that delivers as fast as the reader reads is ``unpaced``; ``fast``, its former
+    name (it read like CFSR's fast quality tier), still works with a deprecation message, in
+    the library and on ``cfsr serve``'s command line; the state names the mode."""
+    import argparse
+
+    from cfsr_live.driver.source import ReplayMode
+    from cfsr_live.service.commands import serve
+
+    dev = ReplayDevice(dat, mode="unpaced")
+    assert dev.mode is ReplayMode.UNPACED and dev.get_facility(ReplayControl).state()["mode"] \
+        == "unpaced"
+    with pytest.warns(DeprecationWarning, match="'unpaced'"):
+        assert ReplayDevice(dat, mode="fast").mode is ReplayMode.UNPACED
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    assert serve.build_settings(p.parse_args([])).replay_mode is ReplayMode.PACED
+    mode = serve.build_settings(p.parse_args(["--replay-mode", "fast"])).replay_mode
+    assert mode is ReplayMode.UNPACED and "now named --replay-mode unpaced" in \
+        capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        p.parse_args(["--replay-mode", "warp"])
 
 
 def test_bad_arguments(dat):

@@ -449,7 +449,7 @@ def test_serve_without_arguments_plays_the_demo(tmp_path):
         out = s.output()
         assert "http://127.0.0.1:8000/" in out
         st = s.wait_for(lambda x: x["output_fps"] > 0, what="demo frames")
-        assert st["source"]["id"] == "demo" and st["source"]["kind"] == "replay"
+        assert st["source"]["id"] == "demo" and st["source"]["kind"] == "demo"
         f = ws_frames(s, 2)[-1]
         assert f["image"].shape == (250, 400) and f["image"].std() > 0
     from cfsr.datfile import read_dat

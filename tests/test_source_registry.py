@@ -22,6 +22,9 @@ from cfsr_live.service import sources
 
 PLUGIN = '''
 """A third party's camera kind (test plugin)."""
+from dataclasses import asdict, dataclass
+
+from cfsr_live.driver.source import SourceCounters
 from cfsr_live.replay.device import ReplayDevice
 from cfsr_live.replay.pattern import pattern_recording
 from cfsr_live.service.catalog import CatalogEntry
@@ -31,19 +34,25 @@ from cfsr_live.service.sources import SourceKind
 SERIALS = ("A1", "B2")
 
 
+@dataclass(frozen=True)
+class FakeCamCounters(SourceCounters):
+    """The counters of every source and one of this camera's own."""
+
+    link_resets: int = 0
+
+
 class FakeCamera(ReplayDevice):
-    """A camera whose link lost 7 frames (its own counter name)."""
+    """A camera whose link lost 7 frames over 2 resets of its link."""
 
     def counters(self):
-        return {**super().counters(), "link_drops": 7}
+        base = {**asdict(super().counters()), "lost_frames": 7, "replay_behind_frames": None}
+        return FakeCamCounters(**base, link_resets=2)
 
 
 class FakeCamKind(SourceKind):
     name = "fakecam"
     summary = "a third party's camera"
     order = 25
-    link_loss_counter = "link_drops"
-    pacing_loss_counter = None
 
     def add_select_argument(self, select, command):
         select.add_argument("--fakecam", metavar="SERIAL", help="a fake camera by serial")
@@ -98,6 +107,52 @@ def test_built_in_kinds_are_entry_points():
     assert [k.name for k in sources.kinds()][:4] == ["demo", "replay", "usb", "sim"]
     with pytest.raises(ValueError, match="unknown source kind 'nope'.*demo"):
         sources.get("nope")
+
+
+def test_each_kind_opens_a_source_named_as_the_registry_names_the_kind(tmp_path, monkeypatch):
+    """One vocabulary of kinds: the source a built-in kind opens says the kind's name in its
+    ``info.kind``, which the status and a recording's sidecar show."""
+    from cfsr.datfile import write_dat
+    from cfsr_live.replay.pattern import pattern_recording
+    from cfsr_live.service import demo
+    from cfsr_live.service.settings import SourceSpec
+
+    dat = tmp_path / "a.dat"
+    write_dat(dat, pattern_recording(300, height=16, width=32))
+    monkeypatch.setattr(demo, "ensure_demo", lambda steps, say: dat)
+    specs = {"demo": SourceSpec(kind="demo"), "replay": SourceSpec(kind="replay", path=dat),
+             "sim": SourceSpec(kind="sim", options={"scene": "pattern"}),
+             "usb": SourceSpec(kind="usb")}  # made, not opened: no camera here
+    for name, spec in specs.items():
+        assert sources.get(name).open(spec, sources.OpenOptions()).info.kind == name
+
+
+def test_source_counters_are_one_typed_record(tmp_path):
+    """A source's counters are a frozen record: the loss fields a source lacks are None and
+    left out of the status's dict; a snapshot does not change as the source goes on."""
+    import dataclasses
+
+    from cfsr_live.driver.source import SourceCounters
+    from cfsr_live.driver.usb import UsbCameraSource, UsbCounters
+    from cfsr_live.replay.device import ReplayDevice
+    from cfsr_live.replay.pattern import pattern_recording
+
+    dev = ReplayDevice(pattern_recording(300, height=16, width=32), mode="unpaced",
+                       block_frames=100)
+    dev.open()
+    before = dev.counters()
+    assert dev.read_block() is not None
+    after = dev.counters()
+    dev.close()
+    assert isinstance(after, SourceCounters) and after.lost_frames is None
+    assert (before.frames_delivered, after.frames_delivered) == (0, 100)
+    assert after.as_dict() == {"frames_delivered": 100, "replay_behind_frames": 0, "loops": 0}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        after.frames_delivered = 1  # type: ignore[misc]
+    cam = UsbCameraSource().counters()  # a camera has a link: its loss is counted from 0
+    assert isinstance(cam, UsbCounters) and cam.lost_frames == 0
+    assert cam.replay_behind_frames is None
+    assert {"lost_frames", "timeouts", "reconnects"} <= cam.as_dict().keys()
 
 
 def test_register_twice_is_an_error(fakecam):
@@ -161,8 +216,9 @@ def test_plugin_kind_listed_opened_and_counted_by_the_service(fakecam, tmp_path)
         assert r.json()["kind"] == "fakecam" and r.json()["name"] == "fake camera A1"
         st = client.get("/api/status").json()
         assert st["source"]["id"] == "fakecam:A1"
-        # its own loss counter, named by its kind, is the status page's link loss
-        assert st["source"]["counters"]["link_drops"] == 7 and st["drops"]["usb"] == 7
+        # its counters' link loss is the status page's, and its own field is shown too
+        assert st["source"]["counters"]["link_resets"] == 2 and st["drops"]["usb"] == 7
+        assert "replay_behind_frames" not in st["source"]["counters"]  # a camera is not paced
         assert next(s for s in client.get("/api/sources").json()
                     if s["id"] == "fakecam:A1")["current"]
         # frames flow from it through the worker

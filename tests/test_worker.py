@@ -48,7 +48,7 @@ def rec():
 
 def _pipeline(rec, workers: int = 1):
     """Replay (fast, looping) -> blocking ring -> supervised worker of ``workers`` processes."""
-    dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=64)
+    dev = ReplayDevice(rec, mode="unpaced", loop=True, block_frames=64)
     dev.open()
     ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
     slot = FrameSlot.create(max_pixels=H * W)
@@ -235,7 +235,7 @@ def test_a_slow_first_frame_is_reported_and_not_taken_for_a_hang(rec):
     """The first frame under a config may wait on numba's compiler for minutes on a machine's
     first use: the worker reports how long it has been computing, and neither the supervisor
     (hang_timeout far shorter than the wait) nor the pool's watchdog restarts it."""
-    dev = ReplayDevice(rec, mode="fast", loop=True, block_frames=64)
+    dev = ReplayDevice(rec, mode="unpaced", loop=True, block_frames=64)
     dev.open()
     ring = SpikeRing.create(8, 64, rec.layout.frame_bytes, blocking=True)
     slot = FrameSlot.create(max_pixels=H * W)

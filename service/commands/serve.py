@@ -16,6 +16,32 @@ import sys
 import tempfile
 from pathlib import Path
 
+from cfsr.cli._common import add_pool_arguments, available_memory, count_type
+from cfsr.cli._extras import require_extra
+from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
+from cfsr_live.service import sources
+from cfsr_live.service.frameslot import FRAME_PREFIX
+from cfsr_live.service.safefs import FolderLock
+from cfsr_live.service.security import install_log_redaction
+from cfsr_live.service.settings import (
+    DEFAULT_MAX_CONNECTIONS,
+    MAX_FPS_RANGE,
+    RING_MAX_MB_RANGE,
+    RING_SECONDS_RANGE,
+    Settings,
+    SourceSpec,
+    default_data_dir,
+)
+from cfsr_live.service.signals import (
+    Stopped,
+    ignore_ending_signals,
+    raise_on_ending_signals,
+    start_resource_tracker,
+    trap_ending_signals,
+)
+from cfsr_live.shm.files import remove_stale_files, shared_dirs
+from cfsr_live.shm.ring import RING_PREFIX
+
 HELP = "start the live service and browser viewer (needs cfsr[live])"
 #: the source kind opened when the command line names none
 DEFAULT_SOURCE = "demo"
@@ -47,16 +73,6 @@ def _bounded(lo: float, hi: float, what: str):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from cfsr.cli._common import add_pool_arguments, count_type
-    from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
-    from cfsr_live.service import sources
-    from cfsr_live.service.settings import (
-        DEFAULT_MAX_CONNECTIONS,
-        MAX_FPS_RANGE,
-        RING_MAX_MB_RANGE,
-        RING_SECONDS_RANGE,
-    )
-
     fps_lo, fps_hi = MAX_FPS_RANGE
     ring_lo, ring_hi = RING_SECONDS_RANGE
     cap_lo, cap_hi = RING_MAX_MB_RANGE
@@ -112,9 +128,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="believe X-Forwarded-For/-Proto from this reverse proxy's address "
                    "(repeatable; default none: the peer address is the client's, whatever "
                    "headers say)")
-    p.add_argument("--replay-mode", choices=("paced", "fast"), default="paced",
-                   help="paced: real-time schedule (default); fast: deterministic, as fast as "
-                   "the worker consumes (tests)")
+    p.add_argument("--replay-mode", choices=("paced", "unpaced", "fast"), default="paced",
+                   metavar="{paced,unpaced}",
+                   help="paced: real-time schedule (default); unpaced: deterministic, as fast as "
+                   "the worker consumes (tests; 'fast', its former name, still works)")
     p.add_argument("--log-level", default="warning", help="uvicorn log level")
     p.add_argument("--no-warmup", action="store_true",
                    help="do not compile the methods' kernels in the background on a first start "
@@ -123,10 +140,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-hooks", action="store_true", help=argparse.SUPPRESS)
 
 
-def build_settings(args: argparse.Namespace):
-    from cfsr_live.service import sources
-    from cfsr_live.service.settings import Settings, SourceSpec, default_data_dir
+def _replay_mode(name: str) -> str:
+    """The replay mode ``name``; the former ``fast`` (it read like CFSR's fast tier) is
+    ``unpaced``, said once on stderr."""
+    if name != "fast":
+        return name
+    print("cfsr serve: --replay-mode fast is now named --replay-mode unpaced", file=sys.stderr)
+    return "unpaced"
 
+
+def build_settings(args: argparse.Namespace):
     # every kind checks its own flags (the group lets at most one pick a source)
     picked = [s for k in sources.kinds() if (s := k.spec_from_args(args)) is not None]
     spec = picked[0] if picked else SourceSpec(kind=DEFAULT_SOURCE)
@@ -138,7 +161,7 @@ def build_settings(args: argparse.Namespace):
         source=spec,
         speed=args.speed,
         loop=not args.no_loop,
-        replay_mode=args.replay_mode,
+        replay_mode=_replay_mode(args.replay_mode),
         method=args.method,
         max_fps=args.max_fps,
         ring_seconds=args.ring_seconds,
@@ -190,6 +213,7 @@ def _check_data_dir(path: Path) -> None:
 
 
 def _check_viewer(settings) -> None:
+    # deferred: FastAPI and uvicorn load after the live extra's check, never in `cfsr --help`
     from cfsr_live.service.app import viewer_dir
 
     page = viewer_dir(settings) / "index.html"
@@ -205,10 +229,6 @@ def _remove_stale_segments() -> int:
 
     Creating a ring or slot removes them too (:func:`cfsr_live.shm.files.create_shared_file`); this
     pass only exists so that the start can say how many there were."""
-    from cfsr_live.service.frameslot import FRAME_PREFIX
-    from cfsr_live.shm.files import remove_stale_files, shared_dirs
-    from cfsr_live.shm.ring import RING_PREFIX
-
     dirs = {d for d in shared_dirs() if d.is_dir()}
     return sum(remove_stale_files(d, pre) for d in dirs for pre in (RING_PREFIX, FRAME_PREFIX))
 
@@ -224,23 +244,14 @@ def _token_note(token: str | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cfsr.cli._extras import require_extra
-
     require_extra("live")
     settings = build_settings(args)  # refuses a non-loopback bind without a token
     _check_viewer(settings)
     _check_port(settings.host, settings.port)
     _check_data_dir(settings.data_dir)
     say = lambda m: print(f"cfsr serve: {m}", flush=True)  # noqa: E731
+    # deferred: FastAPI and uvicorn load after the live extra's check, never in `cfsr --help`
     from cfsr_live.service.httpproto import install_log_rate_limit
-    from cfsr_live.service.safefs import FolderLock
-    from cfsr_live.service.security import install_log_redaction
-    from cfsr_live.service.signals import (
-        Stopped,
-        ignore_ending_signals,
-        raise_on_ending_signals,
-        start_resource_tracker,
-    )
 
     # no log record of this process, at any level, carries the token or a session cookie
     install_log_redaction([settings.token] if settings.token else [])
@@ -264,9 +275,6 @@ def run(args: argparse.Namespace) -> int:
 def _fit_ring_to_memory(settings, say) -> None:
     """Lower the ring's cap to a quarter of the memory available now (not below the smallest
     cap): the ring lives in shared memory, and a fast source fills all of it."""
-    from cfsr.cli._common import available_memory
-    from cfsr_live.service.settings import RING_MAX_MB_RANGE
-
     share = max(RING_MAX_MB_RANGE[0] << 20, available_memory() // 4)
     if share < settings.ring_max_bytes:
         say(f"the ring holds at most {share >> 20} MiB (a quarter of the memory available), "
@@ -276,18 +284,16 @@ def _fit_ring_to_memory(settings, say) -> None:
 
 def _serve(settings, args: argparse.Namespace, say) -> int:
     """Start the runtime, serve until stopped, stop; the exit status."""
-    from cfsr_live.service.signals import ignore_ending_signals
-
     stale = _remove_stale_segments()
     if stale:
         say(f"removed {stale} shared-memory file(s) left by a server that did not stop cleanly")
     _fit_ring_to_memory(settings, say)
-    from cfsr_live.service import sources
 
     # slow first-use work (the demo's simulation) is said here, before the service starts
     sources.get(settings.source.kind).prepare(
         settings.source, sources.OpenOptions.from_settings(settings, say=say))
 
+    # deferred: FastAPI and uvicorn load after the live extra's check, never in `cfsr --help`
     from cfsr_live.service.app import create_app
     from cfsr_live.service.httpproto import HeadTimeoutH11Protocol
     from cfsr_live.service.runtime import Runtime
@@ -321,6 +327,7 @@ def _serve(settings, args: argparse.Namespace, say) -> int:
 
 def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
     """The uvicorn server of ``rt``'s app (every ending signal trapped, request heads timed)."""
+    # deferred: FastAPI and uvicorn load after the live extra's check, never in `cfsr --help`
     import uvicorn
 
     from cfsr_live.service.httpproto import (
@@ -330,7 +337,6 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
         widen_listen_queue,
     )
     from cfsr_live.service.hub import MAX_CLIENT_MESSAGE_BYTES, MAX_CLIENT_MESSAGES_QUEUED
-    from cfsr_live.service.signals import trap_ending_signals
 
     if rt.kernels.status().state == "compiling":
         say("first start here: compiling the methods' kernels in the background at low "

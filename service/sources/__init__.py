@@ -8,9 +8,12 @@ camera) is one :class:`SourceKind` object that owns everything about it outside 
 * its entries in the viewer's source menu, ``GET /api/sources``
   (:meth:`SourceKind.entries`, :meth:`SourceKind.entry`, :meth:`SourceKind.spec_for`);
 * opening it (:meth:`SourceKind.open`), which returns a
-  :class:`cfsr_live.driver.source.Source`;
-* which of the source's own counters are frames it lost (:attr:`SourceKind.link_loss_counter`,
-  :attr:`SourceKind.pacing_loss_counter`), shown in the status page's ``drops``.
+  :class:`cfsr_live.driver.source.Source` whose ``info.kind`` is the kind's name (the one
+  name of a kind: the status and a recording's sidecar show it).
+
+What a source lost is in its own typed counters
+(:class:`cfsr_live.driver.source.SourceCounters`), not in the kind: the status page's
+``drops`` read them whatever the kind.
 
 Kinds are found through the entry-point group :data:`ENTRY_POINT_GROUP` (``cfsr.sources``),
 the way commands join the CLI through ``cfsr.commands``: the built-in kinds are declared in
@@ -27,14 +30,13 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
-import weakref
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cfsr_live.service.settings import SourceSpec
+from cfsr_live.service.settings import SourceSpec, cache_dir
 
 if TYPE_CHECKING:
     from cfsr_live.driver.source import Source
@@ -46,9 +48,7 @@ __all__ = [
     "OpenOptions",
     "SourceKind",
     "get",
-    "kind_of",
     "kinds",
-    "opened",
     "register",
     "unregister",
 ]
@@ -70,8 +70,9 @@ class OpenOptions:
     speed: float | None = None
     #: start again at the end of a recording
     loop: bool | None = None
-    #: a recording's replay pacing: ``paced`` (real-time schedule, late frames skipped) or
-    #: ``fast`` (as fast as the consumer reads, nothing skipped); ``cfsr serve --replay-mode``
+    #: a recording's replay pacing (:class:`~cfsr_live.driver.source.ReplayMode`): ``paced``
+    #: (real-time schedule, late frames skipped) or ``unpaced`` (as fast as the consumer
+    #: reads, nothing skipped); ``cfsr serve --replay-mode``
     mode: str | None = None
     #: the consumer is a writer (``cfsr record``): every kind delivers as fast as it is read
     #: and skips nothing, the simulator too (which ``mode`` leaves paced: it stands for a
@@ -89,8 +90,6 @@ class OpenOptions:
     @classmethod
     def from_settings(cls, settings: Settings, say: Callable[[str], None] | None = None
                       ) -> OpenOptions:
-        from cfsr_live.service.settings import cache_dir
-
         return cls(speed=settings.speed, loop=settings.loop, mode=settings.replay_mode,
                    block_frames=settings.block_frames, cache_dir=cache_dir(),
                    demo_steps=settings.demo_steps, say=say)
@@ -113,12 +112,6 @@ class SourceKind:
     summary: str = ""
     #: where the kind's entries stand in ``GET /api/sources`` (lower first)
     order: int = 100
-    #: the source counter (``Source.counters()``) of frames lost before they reached the host
-    #: (index gaps on a link): the status page's ``drops.usb``
-    link_loss_counter: str | None = "lost_frames"
-    #: the source counter of frames a paced replay skipped to stay on schedule:
-    #: ``drops.replay``
-    pacing_loss_counter: str | None = "replay_behind_frames"
 
     # -- command line ---------------------------------------------------------------------------
     def add_select_argument(self, select: argparse._MutuallyExclusiveGroup,
@@ -179,9 +172,6 @@ class SourceKind:
 _KINDS: dict[str, SourceKind] = {}
 _loaded = False
 _LOAD_LOCK = threading.Lock()
-#: the kind that made each open source (for its loss counters); weak: a closed, dropped
-#: source leaves no entry
-_OPENED: weakref.WeakKeyDictionary[Any, SourceKind] = weakref.WeakKeyDictionary()
 
 
 def _instance(obj: Any) -> SourceKind:
@@ -249,20 +239,3 @@ def get(name: str) -> SourceKind:
         raise ValueError(
             f"unknown source kind {name!r}; known: {', '.join(sorted(_KINDS)) or 'none'}"
         ) from None
-
-
-def opened(kind: SourceKind, src: Source) -> Source:
-    """Note that ``kind`` made ``src`` (read back by :func:`kind_of`); returns ``src``."""
-    try:
-        _OPENED[src] = kind
-    except TypeError:  # an unhashable source: its losses are read by the default names
-        pass
-    return src
-
-
-def kind_of(src: Source) -> SourceKind | None:
-    """The kind that made ``src`` through the catalogue, or None (a source made by hand)."""
-    try:
-        return _OPENED.get(src)
-    except TypeError:  # an unhashable source cannot have been noted
-        return None

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import logging
 
-from cfsr_live.driver.source import Source
+from cfsr_live.driver.source import ReplayMode, Source
+from cfsr_live.replay.device import ReplayDevice
 from cfsr_live.service.catalog import CatalogEntry, SourceCatalog
+from cfsr_live.service.demo import demo_path, ensure_demo
 from cfsr_live.service.settings import Settings, SourceSpec
 from cfsr_live.service.sources import OpenOptions, SourceKind
 
@@ -27,11 +29,8 @@ class DemoKind(SourceKind):
     name = "demo"
     summary = "the built-in demo recording (simulated on first use, then cached)"
     order = 0
-    link_loss_counter = None  # a file loses nothing on a link
 
     def entries(self, catalog: SourceCatalog) -> list[CatalogEntry]:
-        from cfsr_live.service.demo import demo_path
-
         dp = demo_path(catalog.settings.demo_steps)
         demo = CatalogEntry(id="demo", kind="demo", name=NAME)
         if dp.exists():
@@ -42,16 +41,11 @@ class DemoKind(SourceKind):
         return [demo]
 
     def prepare(self, spec: SourceSpec, options: OpenOptions) -> None:
-        from cfsr_live.service.demo import ensure_demo
-
         ensure_demo(_steps(options), say=options.say or (lambda m: None))
 
     def open(self, spec: SourceSpec, options: OpenOptions) -> Source:
-        from cfsr_live.replay.device import ReplayDevice
-        from cfsr_live.service.demo import ensure_demo
-
         path = ensure_demo(_steps(options), say=options.say or (lambda m: log.warning("%s", m)))
         kw = options.given("speed", "loop", "mode", "block_frames")
         if options.unpaced:
-            kw["mode"] = "fast"
-        return ReplayDevice(path, name="demo", **kw)
+            kw["mode"] = ReplayMode.UNPACED
+        return ReplayDevice(path, kind=self.name, name="demo", **kw)

@@ -7,7 +7,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cfsr_live.driver.source import Source
+from cfsr_live.driver.source import ReplayMode, Source
+from cfsr_live.replay.device import ReplayDevice
 from cfsr_live.service.catalog import CatalogEntry, SourceCatalog
 from cfsr_live.service.settings import SourceSpec
 from cfsr_live.service.sources import OpenOptions, SourceKind
@@ -24,7 +25,6 @@ class ReplayKind(SourceKind):
     name = "replay"
     summary = "a .dat recording replayed at the sensor's rate (or faster)"
     order = 10
-    link_loss_counter = None  # a file loses nothing on a link
 
     def add_select_argument(self, select, command: str) -> None:
         select.add_argument("--replay", metavar="FILE", type=Path, help=_HELP[command])
@@ -56,11 +56,9 @@ class ReplayKind(SourceKind):
         return f"replay:{spec.path.name}" if spec.path is not None else self.name
 
     def open(self, spec: SourceSpec, options: OpenOptions) -> Source:
-        from cfsr_live.replay.device import ReplayDevice
-
         if spec.path is None:
             raise ValueError("replay source needs a file")
         kw = options.given("speed", "loop", "mode", "block_frames")
         if options.unpaced:
-            kw["mode"] = "fast"
+            kw["mode"] = ReplayMode.UNPACED
         return ReplayDevice(spec.path, **kw)

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from cfsr_live.driver.source import Source
+from cfsr_live.driver.source import ReplayMode, Source
+from cfsr_live.replay.simulator import SimulatorSource
 from cfsr_live.service.catalog import CatalogEntry, SourceCatalog
 from cfsr_live.service.settings import SourceSpec
 from cfsr_live.service.sources import OpenOptions, SourceKind
@@ -23,6 +24,7 @@ _HELP = {
 
 def _scenes() -> list[str]:
     try:
+        # deferred: the simulator loads when its scenes are listed (pattern needs none)
         from cfsr.simulate import SCENES
     except ImportError:
         return [*SIM_SCENES]
@@ -33,7 +35,6 @@ class SimKind(SourceKind):
     name = "sim"
     summary = "the live simulator (a synthetic scene at the sensor's rate)"
     order = 30
-    link_loss_counter = None  # generated here: nothing to lose on a link
 
     def add_select_argument(self, select, command: str) -> None:
         select.add_argument("--sim", metavar="SCENE", help=_HELP[command])
@@ -59,11 +60,9 @@ class SimKind(SourceKind):
         return f"sim:{spec.options.get('scene') or 'pattern'}"
 
     def open(self, spec: SourceSpec, options: OpenOptions) -> Source:
-        from cfsr_live.replay.simulator import SimulatorSource
-
         kw = options.given("speed")
         if options.cache_dir is not None:
             kw["cache_dir"] = options.cache_dir / "sim"
-        if options.unpaced:
-            kw["mode"] = "fast"  # a paced simulator stands for a live camera: serve keeps it
+        if options.unpaced:  # a paced simulator stands for a live camera: serve keeps it
+            kw["mode"] = ReplayMode.UNPACED
         return SimulatorSource(spec.options.get("scene") or "pattern", **kw)

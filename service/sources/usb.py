@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from cfsr.cli._extras import require_extra
 from cfsr_live.driver.source import Source
 from cfsr_live.service.catalog import CatalogEntry, SourceCatalog
 from cfsr_live.service.settings import SourceSpec
@@ -26,8 +27,6 @@ class UsbKind(SourceKind):
     name = "usb"
     summary = "the USB spike camera"
     order = 20
-    link_loss_counter = "lost_frames"  # index gaps in the frame headers
-    pacing_loss_counter = None  # a camera is never paced by the host
 
     def add_select_argument(self, select, command: str) -> None:
         select.add_argument("--usb", action="store_true", help=_HELP[command])
@@ -59,11 +58,10 @@ class UsbKind(SourceKind):
         return SourceSpec(kind=self.name, options=ids)
 
     def check_installed(self) -> None:
-        from cfsr.cli._extras import require_extra
-
         require_extra("live", ["usb"])
 
     def open(self, spec: SourceSpec, options: OpenOptions) -> Source:
+        # deferred: the driver needs the live extra (isal, pyusb); a base install lists it
         from cfsr_live.driver.usb import UsbCameraSource
 
         kw = {k: spec.options[k] for k in ("vid", "pid") if spec.options.get(k) is not None}

@@ -112,7 +112,7 @@ def test_driver_byte_exact_from_dat(camera, rec):
     assert src.get_facility(CameraControl).device_info()["serial"] == "EMU00001"
     blocks = _read(src, 12, rec)  # 3072 frames: the 1000-frame file loops three times
     assert [b.index for b in blocks] == list(range(0, 12 * FPB, FPB))
-    assert src.counters()["lost_frames"] == 0
+    assert src.counters().lost_frames == 0
     src.close()
 
 
@@ -148,13 +148,13 @@ def test_paced_40k_frames_per_second_for_5s_without_loss(camera, rec):
     th = threading.Thread(target=consume)
     th.start()
     acq.start()
-    wait_until(lambda: src.counters()["frames_delivered"] > 0, 5, "the first frames",
+    wait_until(lambda: src.counters().frames_delivered > 0, 5, "the first frames",
                interval=0.01)
     t1 = time.monotonic()
-    f1 = src.counters()["frames_delivered"]
+    f1 = src.counters().frames_delivered
     time.sleep(5.5)  # not a wait for a condition: the window the sustained rate is measured over
     t2 = time.monotonic()
-    f2 = src.counters()["frames_delivered"]
+    f2 = src.counters().frames_delivered
     acq.stop()
     model = camera.model
     with model.lock:
@@ -169,8 +169,8 @@ def test_paced_40k_frames_per_second_for_5s_without_loss(camera, rec):
     ring.close()
     c = src.counters()
     assert t2 - t1 >= 5.0
-    assert c["lost_frames"] == dropped == 0
-    assert c["timeouts"] == 0 and c["crc_errors"] == 0 and c["resyncs"] == 0
+    assert c.lost_frames == dropped == 0
+    assert c.timeouts == 0 and c.crc_errors == 0 and c.resyncs == 0
     assert reader.lost_frames == 0 and got["gaps"] == 0 and got["bad"] == 0
     # the check is zero loss while the device paces at the sensor rate (its FIFO holds 1 s, so
     # a host that fell behind would have lost frames); the rate itself depends on how much CPU
@@ -196,10 +196,10 @@ def test_fault_then_recovery(camera, rec, fault, counter, loss):
     camera.model.inject(fault, seconds=1.0)
     blocks = _read(src, 4, rec)
     c = src.counters()
-    assert c[counter] >= 1, c
-    assert c["lost_frames"] == loss == camera.model.expected_loss, c
+    assert getattr(c, counter) >= 1, c
+    assert c.lost_frames == loss == camera.model.expected_loss, c
     if fault == "overflow":
-        assert c["resyncs"] == 1
+        assert c.resyncs == 1
     if loss:
         assert any(b.flags & BlockFlags.LOSS and b.lost_before == loss for b in blocks)
     assert src.state == SourceState.STREAMING
@@ -225,8 +225,8 @@ def test_unplug_then_replug(camera, rec, kind):
                interval=0)
     blocks = _read(src, 8, rec)
     c = src.counters()
-    assert c["disconnects"] == 1 and c["reconnects"] == 1, c
+    assert c.disconnects == 1 and c.reconnects == 1, c
     # the sensor kept running while the camera was away: those frames are lost, and counted
-    assert c["lost_frames"] == camera.model.expected_loss > 0, c
+    assert c.lost_frames == camera.model.expected_loss > 0, c
     assert blocks[-1].index > blocks[0].index
     src.close()
