@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.config import MethodConfig
 from cfsr.methods.registry import Memo, Output, get_method, resolve_params
 from cfsr.spikes import SpikeRecording, as_recording
 
@@ -46,7 +47,7 @@ def reconstruct_outputs(
     previous output (``memo``), so the numbers depend on the set of steps asked for, never
     on their order, the number of processes or how the groups are spread over them.
     """
-    from cfsr.config import MethodConfig
+    # deferred: keeps the process pool (multiprocessing) out of `import cfsr` and the web process
     from cfsr.offline import carry_groups, stream_reconstruct
 
     rec = as_recording(spikes)
@@ -67,7 +68,8 @@ def reconstruct_outputs(
             a = max(0, t - before)
             b = min(rec.n_frames, t + after + 1)
             got[t] = m.run_window(rec, a, b, t, settings, memo)
-    return [got[t] for t in ts]
+    fix = getattr(rec, "flatten", None)  # a flat-field gain (cfsr.defects.corrected)
+    return [got[t] if fix is None else fix(got[t]) for t in ts]
 
 
 def reconstruct(

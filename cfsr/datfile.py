@@ -353,6 +353,9 @@ class DatWriter:
             if len(data) > SIDECAR_RESERVE_BYTES:  # a long drop map: keep its total only
                 side["drop_map"] = f"{len(side.get('drop_map') or ())} entries, not kept"
                 data = _sidecar_bytes(side, SIDECAR_RESERVE_BYTES)
+            if len(data) > SIDECAR_RESERVE_BYTES:  # a calibration's gain: 'cfsr info' remakes it
+                side.pop("defects", None)
+                data = _sidecar_bytes(side, SIDECAR_RESERVE_BYTES)
             try:
                 self._put_sidecar_in_place(data)
             except OSError:

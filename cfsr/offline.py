@@ -15,8 +15,9 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 from cfsr.config import MethodConfig
+from cfsr.defects import in_buffer
 from cfsr.methods.registry import Output
-from cfsr.pool import FramePool, PoolResult, borrowed_pool
+from cfsr.pool import FramePool, PoolResult, borrowed_pool, default_workers, shared_pool_running
 from cfsr.spikes import SpikeRecording
 from cfsr.streaming import StreamingReconstructor
 from cfsr.warmup import measured_compile
@@ -62,12 +63,23 @@ def carry_groups(config: MethodConfig, times: Sequence[int]) -> list[list[int]]:
 def _streamed(
     rec: SpikeRecording, sr: StreamingReconstructor, times: Sequence[int], block: int
 ) -> Iterator[tuple[int, Output]]:
+    # a corrected recording is corrected in the buffer, not read through a corrected copy
+    rec, sr.defects = in_buffer(rec)
     for a, b, group in _spans(times, sr.before, sr.after, rec.n_frames):
         sr.reset(a)
         blocks = ((s, rec.packed(s, min(b, s + block))) for s in range(a, b, block))
         # The span ends where the recording ends only if b == n; otherwise every window in the
         # group is complete inside [a, b), so "final" never clips a window early.
         yield from sr.run(blocks, group)
+
+
+def _flat(rec: SpikeRecording, outs: Iterable[tuple[int, Output]]
+          ) -> Iterator[tuple[int, Output]]:
+    """``outs`` with a flat-field gain divided out when ``rec`` carries one (a recording read
+    through :func:`cfsr.defects.corrected` with a calibration: ``rec.flatten``)."""
+    fix = getattr(rec, "flatten", None)
+    for t, out in outs:
+        yield t, (out if fix is None else fix(out))
 
 
 def stream_reconstruct(
@@ -99,21 +111,19 @@ def stream_reconstruct(
     pool : FramePool, optional
         A running pool to use (then ``workers`` and ``threads`` are ignored).
     """
-    from cfsr.pool import default_workers, shared_pool_running
-
     ts = sorted({int(t) for t in times})
     bad = [t for t in ts if not 0 <= t < rec.n_frames]
     if bad:
         raise ValueError(f"times {bad} outside the recording (0..{rec.n_frames - 1} steps)")
     cfg = MethodConfig(method, params, preset)
     if pool is not None:
-        yield from pool_outputs(rec, cfg, carry_groups(cfg, ts), pool=pool, carry=True)
+        yield from _flat(rec, pool_outputs(rec, cfg, carry_groups(cfg, ts), pool=pool, carry=True))
         return
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if workers == 1:
         sr = StreamingReconstructor(cfg, rec.layout, slack=block)
-        yield from _streamed(rec, sr, ts, block)
+        yield from _flat(rec, _streamed(rec, sr, ts, block))
         return
     groups = carry_groups(cfg, ts)
     if workers is None:
@@ -123,7 +133,7 @@ def stream_reconstruct(
         else:
             sr = StreamingReconstructor(cfg, rec.layout, slack=block)
             t0 = time.perf_counter()
-            yield from _streamed(rec, sr, groups[0], block)
+            yield from _flat(rec, _streamed(rec, sr, groups[0], block))
             per_output = (time.perf_counter() - t0) * 1e3 / len(groups[0])
             groups = groups[1:]
             left_s = per_output * sum(map(len, groups)) / 1e3  # what the rest costs here
@@ -131,9 +141,10 @@ def stream_reconstruct(
             workers = n if per_output >= POOL_MIN_MS and left_s >= 2 * start_s else 1
         if workers == 1:
             sr = StreamingReconstructor(cfg, rec.layout, slack=block)
-            yield from _streamed(rec, sr, [t for g in groups for t in g], block)
+            yield from _flat(rec, _streamed(rec, sr, [t for g in groups for t in g], block))
             return
-    yield from pool_outputs(rec, cfg, groups, workers=workers, threads=threads, carry=True)
+    yield from _flat(rec, pool_outputs(rec, cfg, groups, workers=workers, threads=threads,
+                                       carry=True))
 
 
 def pool_outputs(

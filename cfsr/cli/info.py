@@ -8,6 +8,9 @@ import sys
 import warnings
 
 from cfsr.cli._common import add_input_arguments, open_input
+from cfsr.datfile import sidecar_path
+from cfsr.defects import calibrate, estimate_map, map_of, save_map, write_to_sidecar
+from cfsr.stats import recording_stats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -27,6 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="write the hot/dead pixel map found here as a calibration file (JSON), for "
         "'cfsr reconstruct --defects FILE'",
     )
+    p.add_argument(
+        "--flat-field",
+        action="store_true",
+        help="the recording is of uniform light: also measure every pixel's gain (threshold "
+        "spread) over the scanned steps and keep it with the map (--save-defects, "
+        "--export-defects), for every method's output to be divided by",
+    )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
@@ -35,9 +45,6 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
     from tqdm import tqdm
-
-    from cfsr.datfile import sidecar_path
-    from cfsr.stats import recording_stats
 
     # info reports a partial tail as a problem rather than refusing the file
     args.allow_partial = True
@@ -74,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         "sidecar": has_sidecar,
         "sidecar_final": has_sidecar and not provisional,
         **asdict(st),
-        "defects": _defects(rec, args),
+        "defects": _defects(rec, args, total),
     }
     if args.json:
         print(json.dumps(info, indent=2))
@@ -108,6 +115,10 @@ def run(args: argparse.Namespace) -> int:
           f"{d['steps']} steps" + (f"; the sidecar's map: {d['sidecar']['hot']} hot, "
                                    f"{d['sidecar']['dead']} dead" if d["sidecar"] else "")
           + ")" + "".join(f"; {what}" for what in d["written"]))
+    if d["gain"]:
+        g = d["gain"]
+        print(f"gain        sd {g['sd']:.2%}, p1 {g['p1']:.3f}, p99 {g['p99']:.3f} (flat field, "
+              f"{d['steps']} steps)")
     if st.problems:
         print("problems:")
         for pr in st.problems:
@@ -117,12 +128,18 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _defects(rec, args: argparse.Namespace) -> dict:
-    """The hot/dead pixel map found in the first 2,000 steps (and the sidecar's, if any);
-    stored or exported as asked."""
-    from cfsr.defects import estimate_map, map_of, save_map, write_to_sidecar
+def _defects(rec, args: argparse.Namespace, total: int) -> dict:
+    """The hot/dead pixel map found in the first 2,000 steps, or with ``--flat-field`` the
+    calibration of the ``total`` scanned steps (and the sidecar's map, if any); stored or
+    exported as asked."""
+    import numpy as np
 
-    found, _ = estimate_map(rec, 2000)
+    found = calibrate(rec, total) if args.flat_field else estimate_map(rec, 2000)[0]
+    gain = None
+    if found.gain is not None:
+        g = found.gain.gain[~found.mask]
+        gain = {"sd": float(g.std()), "p1": float(np.quantile(g, 0.01)),
+                "p99": float(np.quantile(g, 0.99))}
     given = map_of(rec)
     written = []
     if args.save_defects:
@@ -135,5 +152,6 @@ def _defects(rec, args: argparse.Namespace) -> dict:
         "steps": found.steps,
         "sidecar": None if given is None else {"hot": given.n_hot, "dead": given.n_dead,
                                                 "steps": given.steps, "source": given.source},
+        "gain": gain,
         "written": written,
     }

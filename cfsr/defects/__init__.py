@@ -6,6 +6,8 @@
 * :class:`DefectCorrector`: learns and corrects blocks pushed into a
   :class:`~cfsr.streaming.StreamingReconstructor` (the live path).
 * :func:`corrected`: a recording read through the correction (the offline path).
+* :func:`calibrate`, :class:`GainMap`: a flat-field calibration, the map and every pixel's
+  gain (threshold spread), which is divided out of every method's output.
 * :func:`score_map`: precision and recall against a true map (the simulator's).
 """
 
@@ -13,9 +15,11 @@ from cfsr.defects.correct import (
     CorrectedRecording,
     DefectCorrector,
     DonorPlan,
+    calibrate,
     correct_packed,
     corrected,
     estimate_map,
+    in_buffer,
     map_of,
     plan_donors,
     with_defects,
@@ -28,6 +32,7 @@ from cfsr.defects.defect_map import (
     write_to_sidecar,
 )
 from cfsr.defects.estimate import DefectEstimator, DefectParams, classify
+from cfsr.defects.gain import GainMap, flatten, gain_from_counts
 from cfsr.defects.score import score_map
 
 __all__ = [
@@ -38,10 +43,15 @@ __all__ = [
     "DefectMap",
     "DefectParams",
     "DonorPlan",
+    "GainMap",
+    "calibrate",
     "classify",
     "correct_packed",
     "corrected",
     "estimate_map",
+    "flatten",
+    "gain_from_counts",
+    "in_buffer",
     "load_map",
     "map_of",
     "plan_donors",

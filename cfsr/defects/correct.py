@@ -23,8 +23,9 @@ import numpy as np
 
 from cfsr._jit import njit
 from cfsr._packed import stored_to_image
-from cfsr.defects.defect_map import DEFECTS_KEY, DefectMap
+from cfsr.defects.defect_map import DEFECTS_KEY, DefectMap, load_map
 from cfsr.defects.estimate import DefectEstimator, DefectParams, classify
+from cfsr.defects.gain import flatten, gain_from_counts, inverse_gain
 from cfsr.layout import Layout
 from cfsr.spikes import SpikeRecording
 
@@ -34,8 +35,10 @@ __all__ = [
     "correct_packed",
     "DefectCorrector",
     "CorrectedRecording",
+    "calibrate",
     "estimate_map",
     "corrected",
+    "in_buffer",
     "map_of",
     "with_defects",
 ]
@@ -81,7 +84,9 @@ def plan_donors(dmap: DefectMap, layout: Layout, rates: np.ndarray | None = None
                 targets.append(index[y, x])
                 donors.append(index[pick])
                 break
-    return DonorPlan(np.asarray(targets, np.int64), np.asarray(donors, np.int64))
+    t, d = np.asarray(targets, np.int64), np.asarray(donors, np.int64)
+    order = np.argsort(t, kind="stable")  # in memory order: each frame's bytes once, in turn
+    return DonorPlan(t[order], d[order])
 
 
 @njit
@@ -134,6 +139,12 @@ class DefectCorrector:
             self.learn = self.defect_map is None
         self.estimator = DefectEstimator(self.layout, self.params) if self.learn else None
         self.plan = plan_donors(self.map, self.layout)
+        #: 1 / gain (float32 H, W) of a flat-field calibration, kept when a learned map
+        #: replaces the given one (the stream cannot measure it); None: none given
+        self._gain = self.defect_map.gain if self.defect_map else None
+        self.inv_gain = inverse_gain(self._gain)
+        #: bumped whenever the map in use changes (a live recording takes the newest)
+        self.version = 0
         # per half of the mirrored ring, the steps [lo, hi) corrected in it (before_read)
         self._fixed = [(0, 0), (0, 0)]
 
@@ -153,6 +164,14 @@ class DefectCorrector:
                 self.defect_map = None
                 self.plan = plan_donors(est.map, self.layout, est.counts())
                 self._fixed = [(0, 0), (0, 0)]  # buffered steps get the new map when read
+                self.version += 1
+
+    def current(self) -> DefectMap:
+        """The map in use with the given calibration's gain, if any (what a recording of
+        this stream keeps in its sidecar)."""
+        m = self.map
+        return m if m.gain is self._gain else DefectMap(m.hot, m.dead, m.steps, m.source,
+                                                        self._gain)
 
     # -- the mirrored ring of a StreamingReconstructor: steps are corrected when first read --
     def arrived(self, packed: np.ndarray, start: int) -> None:
@@ -192,9 +211,15 @@ class DefectCorrector:
                 r = x % cap + half * cap
                 _copy_bits(buf[r : r + (y - x)], self.plan.targets, self.plan.donors)
 
+    def flatten(self, out: Any) -> Any:
+        """A method's output with the calibration's gain divided out (when enabled and given:
+        :func:`cfsr.defects.gain.flatten`)."""
+        return flatten(out, self.inv_gain) if self.enabled else out
+
     def state(self) -> dict[str, Any]:
         """What a status shows: ``state`` (off / learning / ready / given), the counts of hot
-        and dead pixels, the steps counted and the confidence (0..1)."""
+        and dead pixels, the steps counted, the confidence (0..1) and whether a flat-field
+        ``gain`` map is applied."""
         m = self.map
         est = self.estimator
         if not self.enabled:
@@ -209,20 +234,43 @@ class DefectCorrector:
             "dead": m.n_dead,
             "steps": est.steps if est is not None else m.steps,
             "confidence": est.confidence if est is not None else 1.0,
+            "gain": self.inv_gain is not None,
         }
 
 
 @dataclass
 class CorrectedRecording(SpikeRecording):
     """A recording read through a defect correction: ``packed``/``frames`` return corrected
-    copies of the stored frames (which stay untouched in ``packed_frames``)."""
+    copies of the stored frames (which stay untouched in ``packed_frames``); ``inv_gain``:
+    1 / the calibration's gain, which every output read through :func:`cfsr.reconstruct_outputs`
+    or the offline streaming path is divided by (:meth:`flatten`)."""
 
     defect_map: DefectMap | None = None
     plan: DonorPlan | None = None
+    inv_gain: np.ndarray | None = None
+
+    def flatten(self, out: Any) -> Any:
+        """A method's output with the calibration's gain divided out (if any)."""
+        return flatten(out, self.inv_gain)
 
     def packed(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         raw = super().packed(start, stop)
         return raw if self.plan is None else correct_packed(raw, self.plan)
+
+
+def in_buffer(rec: SpikeRecording) -> tuple[SpikeRecording, DefectCorrector | None]:
+    """How a reconstructor's buffer reads ``rec`` with no corrected copy: a
+    :class:`CorrectedRecording` gives its stored frames and a corrector with its donors, which
+    corrects each buffered step in place when first read (one pass over the bits, where a
+    corrected copy is a second pass over every byte); its gain stays with ``rec.flatten``.
+    Any other recording: itself, no corrector."""
+    if not isinstance(rec, CorrectedRecording) or rec.plan is None:
+        return rec, None
+    raw = SpikeRecording(rec.packed_frames, rec.layout, rec.rate_hz, rec.meta, rec.path)
+    m = rec.defect_map
+    fix = DefectCorrector(rec.layout, DefectMap(m.hot, m.dead, m.steps, m.source))
+    fix.plan = rec.plan
+    return raw, fix
 
 
 def map_of(rec: SpikeRecording) -> DefectMap | None:
@@ -245,6 +293,16 @@ def estimate_map(rec: SpikeRecording, steps: int = 2000, *,
     return classify(est.counts(), est.steps, est.params), est.counts()
 
 
+def calibrate(rec: SpikeRecording, steps: int | None = None) -> DefectMap:
+    """A flat-field calibration: the defect map and every pixel's gain
+    (:func:`cfsr.defects.gain.gain_from_counts`) from ``rec``, a recording of uniform light,
+    over its first ``steps`` steps (default all). A sensor with shot noise needs about
+    ``(1 / precision)**2`` spikes a pixel: 10,000 (a second at 0.25 spikes/step) for 1 %."""
+    found, counts = estimate_map(rec, rec.n_frames if steps is None else steps)
+    return DefectMap(found.hot, found.dead, found.steps, "calibration",
+                     gain_from_counts(counts, found.steps, found.mask))
+
+
 def corrected(rec: SpikeRecording, defect_map: DefectMap | None = None, *,
               steps: int = 2000) -> CorrectedRecording:
     """``rec`` read through the correction of ``defect_map`` (default: the sidecar's, else one
@@ -256,7 +314,8 @@ def corrected(rec: SpikeRecording, defect_map: DefectMap | None = None, *,
         defect_map, counts = estimate_map(rec, steps)
         rates = counts / max(1, defect_map.steps)
     return CorrectedRecording(rec.packed_frames, rec.layout, rec.rate_hz, dict(rec.meta),
-                              rec.path, defect_map, plan_donors(defect_map, rec.layout, rates))
+                              rec.path, defect_map, plan_donors(defect_map, rec.layout, rates),
+                              inverse_gain(defect_map.gain))
 
 
 def with_defects(rec: SpikeRecording, option: str | None) -> SpikeRecording:
@@ -264,8 +323,6 @@ def with_defects(rec: SpikeRecording, option: str | None) -> SpikeRecording:
     map in the recording's sidecar and leaves a recording without one as it is; ``"auto"``
     uses the sidecar's map, else one found in the first 2,000 steps; ``"off"`` leaves the
     spikes as recorded; anything else is a calibration file (:func:`load_map`)."""
-    from cfsr.defects.defect_map import load_map
-
     if option == "off":
         return rec
     if option in (None, "sidecar"):

@@ -17,6 +17,15 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.defects.gain import GainMap
+from cfsr.sidecar import (
+    MAX_SIDECAR_BYTES,
+    _sidecar_dict,
+    read_sidecar,
+    sidecar_path,
+    write_json_atomic,
+)
+
 __all__ = [
     "DefectMap",
     "DEFECTS_KEY",
@@ -47,12 +56,16 @@ class DefectMap:
     source : str
         ``"stream"`` (estimated online), ``"calibration"`` (given from a file) or
         ``"simulator"`` (the simulator's true map).
+    gain : GainMap, optional
+        Every pixel's relative gain, measured on a flat field (:mod:`cfsr.defects.gain`);
+        None: not measured (the stream alone cannot tell it from the scene's texture).
     """
 
     hot: np.ndarray
     dead: np.ndarray
     steps: int = 0
     source: str = "stream"
+    gain: GainMap | None = None
 
     def __post_init__(self) -> None:
         hot = np.asarray(self.hot, bool)
@@ -61,6 +74,8 @@ class DefectMap:
             raise ValueError(f"hot {hot.shape} and dead {dead.shape} must be one (H, W) shape")
         if self.source not in _SOURCES:
             raise ValueError(f"defect map source {self.source!r}: one of {_SOURCES}")
+        if self.gain is not None and self.gain.shape != hot.shape:
+            raise ValueError(f"gain map {self.gain.shape} and defects {hot.shape} differ")
         object.__setattr__(self, "hot", hot)
         object.__setattr__(self, "dead", dead & ~hot)
 
@@ -87,9 +102,10 @@ class DefectMap:
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form: ``{"width", "height", "steps", "source", "hot": [...], "dead":
-        [...]}`` with upright row-major pixel indices."""
+        [...]}`` with upright row-major pixel indices, and ``"gain"`` when measured
+        (:meth:`GainMap.to_dict`)."""
         h, w = self.shape
-        return {
+        out: dict[str, Any] = {
             "width": w,
             "height": h,
             "steps": int(self.steps),
@@ -97,6 +113,9 @@ class DefectMap:
             "hot": np.flatnonzero(self.hot).tolist(),
             "dead": np.flatnonzero(self.dead).tolist(),
         }
+        if self.gain is not None:
+            out["gain"] = self.gain.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, obj: Any, shape: tuple[int, int] | None = None,
@@ -109,7 +128,8 @@ class DefectMap:
         """
         if not isinstance(obj, dict):
             raise ValueError(f"{where}: expected a JSON object, found {type(obj).__name__}")
-        unknown = sorted(set(obj) - {"width", "height", "steps", "source", "hot", "dead"})
+        unknown = sorted(set(obj) - {"width", "height", "steps", "source", "hot", "dead",
+                                     "gain"})
         if unknown:
             raise ValueError(f"{where}: unknown field(s) {unknown}")
         w, h = obj.get("width"), obj.get("height")
@@ -141,7 +161,10 @@ class DefectMap:
             raise ValueError(f"{where}: a pixel is listed both hot and dead")
         if int(masks[0].sum() + masks[1].sum()) > cap:
             raise ValueError(f"{where}: more than {cap} defects ({MAX_DEFECT_FRACTION:.0%})")
-        return cls(masks[0], masks[1], int(steps), str(source))
+        gain = obj.get("gain")
+        if gain is not None:
+            gain = GainMap.from_dict(gain, (h, w), where=f"{where}: gain")
+        return cls(masks[0], masks[1], int(steps), str(source), gain)
 
 
 def _is_int(v: Any) -> bool:
@@ -150,8 +173,6 @@ def _is_int(v: Any) -> bool:
 
 def save_map(dmap: DefectMap, path: str | os.PathLike) -> Path:
     """Export ``dmap`` as a calibration file (JSON, the form :meth:`DefectMap.to_dict` gives)."""
-    from cfsr.datfile import write_json_atomic
-
     p = Path(path)
     write_json_atomic(p, dmap.to_dict())
     return p
@@ -160,8 +181,6 @@ def save_map(dmap: DefectMap, path: str | os.PathLike) -> Path:
 def load_map(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> DefectMap:
     """Read a calibration file written by :func:`save_map` (or by hand), checked; its
     ``source`` reads as ``"calibration"`` unless it says otherwise."""
-    from cfsr.datfile import MAX_SIDECAR_BYTES
-
     p = Path(path)
     if p.stat().st_size > MAX_SIDECAR_BYTES:
         raise ValueError(f"{p}: more than {MAX_SIDECAR_BYTES} bytes: not a defect map")
@@ -176,8 +195,6 @@ def write_to_sidecar(rec: Any, dmap: DefectMap) -> Path:
     """Store ``dmap`` in the sidecar of ``rec`` (a recording read from a ``.dat`` file), so a
     replay of it starts corrected; the sidecar is written whole (temporary file + rename),
     with its other values kept, or made from the recording's geometry if it had none."""
-    from cfsr.sidecar import _sidecar_dict, read_sidecar, sidecar_path, write_json_atomic
-
     if rec.path is None:
         raise ValueError("the recording has no file: nowhere to store its defect map")
     if dmap.shape != rec.layout.shape:
@@ -187,6 +204,10 @@ def write_to_sidecar(rec: Any, dmap: DefectMap) -> Path:
     if side is None:
         side = _sidecar_dict(rec.layout, rec.n_frames, rec.rate_hz, None)
     side[DEFECTS_KEY] = dmap.to_dict()
+
+    if len(json.dumps(side)) > MAX_SIDECAR_BYTES:  # it would not be read back
+        raise ValueError(f"the map with its gain is more than a sidecar's {MAX_SIDECAR_BYTES} "
+                         "bytes: keep it as a calibration file (--export-defects)")
     p = sidecar_path(rec.path)
     write_json_atomic(p, side)
     return p
