@@ -116,6 +116,7 @@ class FrameHub:
         self.latest_msg: bytes | None = None
         self._seq: int | None = None  # sequence number of self.latest
         self._times: deque[float] = deque(maxlen=512)
+        self._since = time.monotonic()  # watching since: the rate's span is never longer
         self.frames_seen = 0
         self.closed_clients_dropped = 0
         self.closed_clients_sent = 0
@@ -180,20 +181,23 @@ class FrameHub:
             await asyncio.sleep(self.poll_s)
 
     def fps(self, window: float = 2.0, longest: float = 10.0) -> float:
-        """Frames delivered per second: those of the last ``window`` seconds, or, at a slow
-        rate (fewer than 3 there), of the last ``longest`` seconds, over the time since the
-        first of them (0 with fewer than 2). At one frame a second it reads 1, not 0."""
+        """Frames delivered per second: the frames of the last ``window`` seconds over that
+        span, or at a slow rate (under 3 frames a ``window`` over the last ``longest``
+        seconds) those of the last ``longest`` seconds; never over more time than the hub has
+        watched (at least a second). At one frame a second it reads 1, and a stream that
+        stopped reads lower each poll.
+
+        A count over a span, not the mean interval between the frames in it: frames come in
+        bursts (pool processes side by side finish close together), and the intervals of the
+        few frames of a slow stream read it 15-65 % high, or low on a hub that just started.
+        """
         now = time.monotonic()
-        for w in (window, longest):
-            ts = [t for t in self._times if now - t <= w]
-            if len(ts) >= 3:
-                break
-        if len(ts) < 2:
-            return 0.0
-        # the mean interval between them, or the time since the first once the wait for the
-        # next frame is longer than an interval (a stream that stopped reads lower each poll)
-        span = max(ts[-1] - ts[0], (now - ts[0]) * (len(ts) - 1) / len(ts), 1e-6)
-        return (len(ts) - 1) / span
+        span = min(longest, max(now - self._since, 1.0))
+        n = sum(1 for t in self._times if now - t < span)
+        if n * window < 3 * span:
+            return n / span
+        span = min(window, span)
+        return sum(1 for t in self._times if now - t < span) / span
 
     def status(self) -> HubStatus:
         """The hub's report: output rate, newest frame, and every client's counters (the
