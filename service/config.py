@@ -34,8 +34,9 @@ __all__ = [
     "LiveConfig",
     "QUALITIES",
     "Quality",
+    "TIER_PARAM",
     "WorkerConfig",
-    "split_quality",
+    "refuse_tier_param",
     "check_max_fps",
 ]
 
@@ -44,6 +45,9 @@ GainMode = Literal["recording", "auto", "fixed"]
 #: or the method's own quality parameter fixed
 Quality = Literal["auto", "full", "fast"]
 QUALITIES: tuple[Quality, ...] = ("auto", "full", "fast")
+#: the method parameter the live tier sets (CFSR's, full or fast; a method without it has
+#: no tiers)
+TIER_PARAM = "quality"
 #: recording: the source's display gain if it has one, else auto; auto: per frame; fixed: gain
 GAIN_MODES: tuple[GainMode, ...] = ("recording", "auto", "fixed")
 
@@ -104,43 +108,50 @@ class ConfigChange:
     params: Mapping[str, Any] | None = None
     display: Mapping[str, Any] | None = None
     max_fps: float | None = None
+    defects: bool | None = None
+    #: CFSR's live tier (auto, full, fast); None keeps it (auto after a change of method)
+    quality: Quality | None = None
+
+    def __post_init__(self) -> None:
+        refuse_tier_param(self.params)
 
 
-def split_quality(
-    params: Mapping[str, Any] | None, current: Quality | None = None
-) -> tuple[dict[str, Any] | None, Quality | None]:
-    """Take the live-only ``quality = auto`` out of method ``params``.
-
-    Returns the parameters for the method (``auto`` removed; ``full``/``fast`` stay, they
-    are the method's own) and the live tier they ask for (None: not given, keep ``current``).
-    """
-    if params is None or "quality" not in params:
-        return (None if params is None else dict(params)), current
-    rest = dict(params)
-    q = rest["quality"]
-    if q == "auto":
-        del rest["quality"]
-        return rest, "auto"
-    if isinstance(q, str) and q in QUALITIES:
-        return rest, q  # type: ignore[return-value]
-    return rest, current  # not a tier: the method's validation names it
+def refuse_tier_param(params: Mapping[str, Any] | None) -> None:
+    """ValueError when method ``params`` hold CFSR's tier (:data:`TIER_PARAM`): in the live
+    service the tier is the configuration's own field (:attr:`LiveConfig.quality`, where
+    ``auto`` lives), and the method's parameter follows it. Offline the parameter is the
+    method's own (``cfsr reconstruct --param quality=fast``)."""
+    if params is not None and TIER_PARAM in params:
+        raise ValueError(
+            f"parameter {TIER_PARAM}={repr(params[TIER_PARAM])[:32]}: the live tier is the "
+            "configuration's own field 'quality' (auto, full or fast: PUT /api/config "
+            '{"quality": "auto"}, cfsr serve --quality), not a method parameter'
+        )
 
 
 @dataclass(frozen=True)
 class LiveConfig:
     """The service's configuration: method, display scale, frame-rate cap, and CFSR's tier
     (``quality``: auto, the live default, picks full or fast per frame to hold ``max_fps``;
-    methods without a ``quality`` parameter ignore it)."""
+    methods without a ``quality`` parameter ignore it; ``defects``: correct hot and dead
+    pixels, and a calibration's gain, before every method (cfsr.defects)).
+
+    The tier is this object's field, the one place ``auto`` lives; the method's own
+    ``quality`` parameter follows it (full under auto, which runs both tiers from full)."""
 
     method: MethodConfig
     display: DisplayScale = field(default_factory=DisplayScale)
     max_fps: float = 30.0
     quality: Quality = "auto"
+    defects: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "max_fps", check_max_fps(self.max_fps))
         if self.quality not in QUALITIES:
             raise ValueError(f"quality {self.quality!r}: use auto, full or fast")
+        want = "full" if self.quality == "auto" else self.quality
+        if self.method.params.get(TIER_PARAM, want) != want:
+            object.__setattr__(self, "method", self.method.replace(params={TIER_PARAM: want}))
 
     @classmethod
     def make(
@@ -149,14 +160,13 @@ class LiveConfig:
         params: Mapping[str, Any] | None = None,
         display: DisplayScale | None = None,
         max_fps: float = 30.0,
+        quality: Quality = "auto",
     ) -> LiveConfig:
-        """A configuration from a method name and parameters that may hold ``quality =
-        auto`` (the service's start: the command line's ``--method`` and the settings'
-        parameters)."""
-        from cfsr.config import MethodConfig
-
-        rest, q = split_quality(params)
-        return cls(MethodConfig(method, rest), display or DisplayScale(), max_fps, q or "auto")
+        """A configuration from a method name, its parameters and the tier (the service's
+        start: ``cfsr serve --method --quality`` and the settings' parameters); ValueError
+        for a tier among the parameters (:func:`refuse_tier_param`)."""
+        refuse_tier_param(params)
+        return cls(MethodConfig(method, params), display or DisplayScale(), max_fps, quality)
 
     def changed(self, change: ConfigChange) -> LiveConfig:
         """The next configuration after the partial update ``change``, all or nothing
@@ -166,25 +176,25 @@ class LiveConfig:
         new_method = (
             change.method is not None and change.method.strip().lower() != self.method.method
         )
-        params, q = split_quality(change.params, None if new_method else self.quality)
-        m = self.method.replace(method=change.method, params=params)
-        if q is None:
-            q = "auto"
-        if q == "auto" and "quality" in m.params and m.params["quality"] != "full":
-            m = m.replace(params={"quality": "full"})  # auto runs both tiers from full
+        q = change.quality or ("auto" if new_method else self.quality)
+        m = self.method.replace(method=change.method, params=change.params)
         d = self.display if change.display is None else self.display.changed(change.display)
-        return LiveConfig(m, d, self.max_fps if change.max_fps is None else change.max_fps, q)
+        return LiveConfig(m, d, self.max_fps if change.max_fps is None else change.max_fps, q,
+                          self.defects if change.defects is None else bool(change.defects))
 
     def public(self) -> dict[str, Any]:
-        """The JSON shape of ``GET /api/config`` (without the effective gain)."""
+        """The JSON shape of ``GET /api/config`` (without the effective gain): the method's
+        parameters less the tier, which is ``quality`` (None for a method without tiers), so
+        that what is read can be sent back."""
         params = dict(self.method.params)
-        if "quality" in params:
-            params["quality"] = self.quality if self.quality == "auto" else params["quality"]
+        tiers = params.pop(TIER_PARAM, None) is not None
         return {
             "method": self.method.method,
             "params": params,
+            "quality": self.quality if tiers else None,
             "display": {"gain_mode": self.display.gain_mode, "gain": self.display.gain},
             "max_fps": self.max_fps,
+            "defects": self.defects,
         }
 
 
@@ -196,8 +206,14 @@ class WorkerConfig:
     method: MethodConfig
     gain: float | None = None  # spikes/step shown as white; None: automatic per frame
     max_fps: float = 30.0
-    deterministic: bool = False  # read every ring block (replay mode "fast", tests)
+    deterministic: bool = False  # read every ring block (replay mode unpaced, tests)
     version: int = 0
     #: CFSR's tier: its own ``quality`` parameter (full, fast), or auto: full when the
     #: frame rate allows it, fast frames between (methods without the parameter: ignored)
     quality: Quality = "auto"
+    #: correct hot/dead pixels (and divide a calibration's gain out) before every method;
+    #: False: the map is still learnt, the spikes go to the methods as they came
+    defects: bool = True
+    #: the source's own defect map (its sidecar's, JSON form of cfsr.defects.DefectMap):
+    #: the correction starts from it, then from the map learnt in the stream
+    defect_map: Mapping[str, Any] | None = None

@@ -31,6 +31,11 @@ import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 
+from cfsr_live.service.config import ConfigChange
+from cfsr_live.service.hub import FrameHub
+from cfsr_live.service.runtime import Runtime
+from cfsr_live.service.settings import Settings
+
 __all__ = ["BUSY_CONFIGS", "LIVE_CONFIGS", "cpu_hogs", "live_throughput"]
 
 #: (method, CFSR tier, processes, threads each): the live figures the benchmark reports
@@ -67,8 +72,6 @@ class _Client:
     does), sampling the output rate the hub reports once a second."""
 
     def __init__(self, slot: Any) -> None:
-        from cfsr_live.service.hub import FrameHub
-
         self.hub = FrameHub(slot)
         self.reported: list[float] = []
         self._stop = threading.Event()
@@ -102,16 +105,12 @@ def _drops(rt: Any) -> dict[str, int]:
 
 def _run_one(method: str, quality: str, workers: int, threads: int, seconds: float,
              settle: float, max_fps: float) -> dict[str, Any]:
-    from cfsr_live.service.config import ConfigChange
-    from cfsr_live.service.runtime import Runtime
-    from cfsr_live.service.settings import Settings
-
     rt = Runtime(Settings(method="tfp", max_fps=max_fps, workers=workers, threads=threads,
                           warmup=False))
     rt.start()
     try:
-        params = {"quality": quality} if method == "cfsr" else None
-        rt.set_config(ConfigChange(method=method, params=params))
+        tier = quality if method == "cfsr" else None
+        rt.set_config(ConfigChange(method=method, quality=tier))
         assert rt.worker is not None
         end = time.monotonic() + settle + 120.0
         while time.monotonic() < end:  # the first frame of the method (kernels loaded)

@@ -7,7 +7,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
-from cfsr_live.service.config import GainMode
+from cfsr_live.service.config import GainMode, Quality
 from cfsr_live.service.settings import (
     MAX_DISPLAY_PIXELS,
     MAX_FPS_RANGE,
@@ -110,6 +110,12 @@ class ConfigModel(BaseModel):
     params: dict[str, Any] = Field(description="method parameters, validated by the method")
     display: DisplayConfig
     max_fps: float = Field(description="most frames per second the worker publishes")
+    quality: Quality | None = Field(
+        None, description="CFSR's tier in the live service: auto (full when max_fps allows "
+        "it, fast frames between), full or fast; null for a method without tiers")
+    defects: bool = Field(True, description="hot and dead pixels (and a calibration's gain) "
+                          "corrected before every method; the status's worker.defects says "
+                          "what the map holds")
     effective_gain: float | None = Field(
         None, description="gain in use (None: automatic per frame), spikes/step"
     )
@@ -190,6 +196,13 @@ class ConfigUpdate(BaseModel):
         None, ge=MAX_FPS_RANGE[0], le=MAX_FPS_RANGE[1],
         description="most frames per second the worker publishes",
     )
+    defects: bool | None = Field(
+        None, description="correct hot and dead pixels (and a calibration's gain) before "
+        "every method: true (the default) or false (the map is still learnt)")
+    quality: Quality | None = Field(
+        None, description="CFSR's tier: auto (full when max_fps allows it, fast frames "
+        "between), full or fast; omitted: kept (auto after a change of method). Not a "
+        "parameter: params.quality is refused (422); ignored by a method without tiers")
 
 
 class ParamInfo(BaseModel):

@@ -17,11 +17,12 @@ from typing import TYPE_CHECKING, Any
 
 from cfsr.layout import STEP_RATE_HZ, Layout
 from cfsr_live.driver.acquisition import Acquisition
-from cfsr_live.driver.source import ReplayControl, Source
+from cfsr_live.driver.source import ReplayControl, ReplayMode, Source
 from cfsr_live.service.catalog import SourceCatalog
 from cfsr_live.service.config import ConfigChange, DisplayScale, LiveConfig, WorkerConfig
 from cfsr_live.service.frameslot import FrameSlot
 from cfsr_live.service.kernel_warmup import KernelWarmup
+from cfsr_live.service.recorder import Recorder
 from cfsr_live.service.safefs import UnsafePathError, open_subfolder
 from cfsr_live.service.settings import MAX_DISPLAY_PIXELS, RECORDING_NAME_RE, Settings, SourceSpec
 from cfsr_live.service.status import (
@@ -29,6 +30,7 @@ from cfsr_live.service.status import (
     HubStatus,
     RateMeter,
     RecordStatus,
+    SourceLosses,
     SourceReport,
     StatusModel,
     WorkerReport,
@@ -41,7 +43,6 @@ from cfsr_live.shm.ring import SpikeRing
 
 if TYPE_CHECKING:
     from cfsr_live.service.hub import FrameHub
-    from cfsr_live.service.recorder import Recorder
 
 __all__ = ["Runtime", "ConflictError"]
 
@@ -78,7 +79,7 @@ class Runtime:
         self.started = time.monotonic()
         self._in_rate = RateMeter()  # frames entering the ring (this and earlier rings)
         self._frames_base = 0  # frames published into earlier rings
-        self._lost_base: dict[str, float] = {}
+        self._lost_base = SourceLosses()  # what sources switched away from lost
         self._sampler_stop = threading.Event()
         self._sampler: threading.Thread | None = None
         self._viewers: int | None = None  # clients watching (None: no hub told us)
@@ -90,7 +91,8 @@ class Runtime:
         """Validate the configuration of the settings, open the source, make the ring and
         the frame slot, start acquisition and the worker (all or nothing)."""
         st = self.settings
-        self.config = LiveConfig.make(st.method, st.params, DisplayScale(), st.max_fps)
+        self.config = LiveConfig.make(st.method, st.params, DisplayScale(), st.max_fps,
+                                      st.quality)
         try:
             self.slot = FrameSlot.create(MAX_DISPLAY_PIXELS)
             spec = self.settings.source
@@ -161,7 +163,7 @@ class Runtime:
                                           slot_frames, lay.frame_bytes, max_bytes=cap)
         except ValueError as exc:
             raise ValueError(f"{src.info.name}: {exc} (cfsr serve --ring-max-mb)") from None
-        blocking = self.settings.replay_mode == "fast"
+        blocking = self.settings.replay_mode == ReplayMode.UNPACED
         return SpikeRing.create(n_slots, slot_frames, lay.frame_bytes, blocking=blocking,
                                 max_bytes=cap)
 
@@ -245,14 +247,9 @@ class Runtime:
         return self.source.describe()
 
     def _keep_source_counters(self, src: Source) -> None:
-        """Keep what a source lost when it is switched away from, by the loss counters its
-        kind declares (a camera package's own names included)."""
-        from cfsr_live.service.status import source_losses
-
-        link, paced = source_losses(src)
-        self._lost_base["lost_frames"] = self._lost_base.get("lost_frames", 0) + link
-        self._lost_base["replay_behind_frames"] = (
-            self._lost_base.get("replay_behind_frames", 0) + paced)
+        """Keep what a source lost when it is switched away from (its counters' loss
+        fields, whatever its kind)."""
+        self._lost_base = self._lost_base.plus(SourceLosses.of(src.counters()))
 
     def facility(self, kind):
         src = self.source
@@ -280,8 +277,11 @@ class Runtime:
             method=c.method,
             gain=self._effective_gain(c),
             max_fps=c.max_fps,
-            deterministic=self.settings.replay_mode == "fast",
+            deterministic=self.settings.replay_mode == ReplayMode.UNPACED,
             quality=c.quality,
+            defects=c.defects,
+            # the replayed recording's map (its sidecar): a replay starts corrected
+            defect_map=self.source.info.meta.get("defects") if self.source else None,
         )
 
     def get_config(self) -> dict[str, Any]:
@@ -346,8 +346,6 @@ class Runtime:
         """Record the live stream to ``DATA_DIR/recordings/NAME.dat`` (+ sidecar), capped at
         ``max_bytes`` (default: the free space less the recorder's reserve); OSError when not
         even one block fits."""
-        from cfsr_live.service.recorder import Recorder
-
         with self._lock:
             if self.recorder is not None and self.recorder.running:
                 raise ConflictError(f"already recording to {self.recorder.path.name}")
@@ -388,6 +386,7 @@ class Runtime:
                             max_frames=max_frames,
                             max_bytes=max_bytes,
                             dir_fd=dir_fd,
+                            defects=lambda: self.worker.defect_map if self.worker else None,
                         )
                         break
                     except FileExistsError:
@@ -466,9 +465,8 @@ class Runtime:
             compute_ms=worker.compute_ms,
             frame_step=frames.frame_step,
             drops=Drops(
-                usb=int(source.link_lost_frames + lost_before.get("lost_frames", 0)),
-                replay=int(source.replay_behind_frames
-                           + lost_before.get("replay_behind_frames", 0)),
+                usb=source.link_lost_frames + lost_before.link,
+                replay=source.replay_behind_frames + lost_before.paced,
                 ring=worker.ring_lost_frames,
                 worker=worker.skipped_frames,
                 clients=frames.client_drops,

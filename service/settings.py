@@ -6,10 +6,13 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cfsr.datfile import MIN_GAIN
 from cfsr_live.driver.source import ReplayMode
+
+if TYPE_CHECKING:
+    from cfsr_live.service.config import Quality
 
 #: open connections (HTTP and WebSocket) at most, by default (service/httpproto.py lowers it
 #: under the open-file limit); here so that the parser of `cfsr serve` needs no uvicorn
@@ -128,8 +131,11 @@ class Settings:
     #: the ring's size cap, bytes (default :data:`cfsr_live.shm.ring.DEFAULT_MAX_BYTES`, 1 GiB)
     ring_max_bytes: int = 1 << 30
     method: str = "tfp"
+    #: the method's parameters (CFSR's tier is not one of them: ``quality`` below)
     params: dict = field(default_factory=dict)
     max_fps: float = 30.0
+    #: CFSR's live tier (``cfsr serve --quality``): auto, full or fast
+    quality: Quality = "auto"
     #: reconstruction processes and numba/OpenCV threads in each (``cfsr serve --workers``,
     #: ``--threads``): frames computed at once; default: one single-threaded process per core
     workers: int = field(default_factory=lambda: _default_workers())

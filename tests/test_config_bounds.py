@@ -55,6 +55,38 @@ def test_every_parameter_has_a_documented_range():
                     assert p.maximum <= m.max_span, f"{name}.{key} reaches past the ring"
 
 
+def test_the_live_tier_is_the_configs_own_field():
+    """CFSR's live tier (auto, full, fast) is the live configuration's field, the one place
+    ``auto`` lives; the method's ``quality`` parameter follows it, and a tier given among the
+    parameters is refused naming the field (API, settings, command line)."""
+    import argparse
+
+    from cfsr_live.service.commands import serve
+    from cfsr_live.service.config import ConfigChange, LiveConfig
+
+    c = LiveConfig.make("cfsr")
+    assert c.quality == "auto" and c.method.params["quality"] == "full"  # auto runs from full
+    assert c.public()["quality"] == "auto" and "quality" not in c.public()["params"]
+    fast = c.changed(ConfigChange(quality="fast"))
+    assert fast.quality == "fast" and fast.method.params["quality"] == "fast"
+    assert fast.changed(ConfigChange(max_fps=10)).method.params["quality"] == "fast"  # kept
+    tfp = fast.changed(ConfigChange(method="tfp"))
+    assert tfp.public()["quality"] is None  # a method without tiers
+    assert tfp.changed(ConfigChange(method="cfsr")).quality == "auto"  # a new method: auto
+    assert LiveConfig.make("cfsr", quality="fast").method.params["quality"] == "fast"
+    for q in ("auto", "fast"):
+        with pytest.raises(ValueError, match="configuration's own field 'quality'"):
+            ConfigChange(params={"quality": q})
+        with pytest.raises(ValueError, match="configuration's own field 'quality'"):
+            LiveConfig.make("cfsr", {"quality": q})
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    assert serve.build_settings(p.parse_args([])).quality == "auto"
+    assert serve.build_settings(p.parse_args(["--quality", "fast"])).quality == "fast"
+    with pytest.raises(SystemExit):
+        p.parse_args(["--quality", "best"])
+
+
 def test_method_listing_shows_ranges():
     tfp = methods()["tfp"]["params"]
     assert tfp["window"]["range"] == f"1..{MAX_WINDOW_STEPS} steps"
@@ -214,6 +246,18 @@ def test_out_of_range_config_is_422_and_changes_nothing(service):
     r = client.put("/api/config", json={"method": "tfp", "params": {"window": 160}})
     assert r.status_code == 200 and r.json()["params"]["window"] == 160
     _frame_after(rt, time.monotonic(), method="tfp")
+
+
+def test_tier_among_the_parameters_is_422_naming_its_field(service):
+    client, rt = service
+    before = client.get("/api/config").json()
+    assert before["quality"] is None  # the method in force (tfp) has no tiers
+    for q in ("auto", "fast"):
+        r = client.put("/api/config", json={"method": "cfsr", "params": {"quality": q}})
+        assert r.status_code == 422 and "own field 'quality'" in r.text, r.text
+    r = client.put("/api/config", json={"quality": "best"})  # the field takes tiers only
+    assert r.status_code == 422 and "quality" in r.text
+    assert client.get("/api/config").json() == before
 
 
 def test_config_the_worker_rejects_is_422_and_not_stored(service, monkeypatch):

@@ -278,7 +278,8 @@
     return [label, wrap];
   }
 
-  function buildParams(name, values) {
+  // values: the method's parameters; tier: CFSR's live tier (the config's own quality field)
+  function buildParams(name, values, tier) {
     const form = $("params-form"), groups = $("param-groups");
     form.innerHTML = ""; groups.innerHTML = "";
     const m = state.methods[name];
@@ -316,7 +317,7 @@
       // the live service adds "auto" (it picks the tier per frame to hold max fps)
       const choices = ["auto", ...(m.params[QUALITY].choices || []).filter((c) => c !== "auto")];
       for (const c of choices) { const o = document.createElement("option"); o.value = c; o.textContent = c; qsel.appendChild(o); }
-      qsel.value = vals[QUALITY];
+      qsel.value = tier || "auto";
     }
     const psel = $("preset-select");
     psel.innerHTML = "";
@@ -348,9 +349,12 @@
       else if (el.dataset.kind === "number") out[el.name] = el.value.trim() === "" ? NaN : Number(el.value);
       else out[el.name] = el.value;
     }
-    const m = state.methods[$("method-select").value];
-    if (m && QUALITY in m.params) out[QUALITY] = $("quality-select").value;
     return out;
+  }
+  // CFSR's live tier: the config's own field, not a parameter (null: the method has none)
+  function readTier() {
+    const m = state.methods[$("method-select").value];
+    return m && QUALITY in m.params ? $("quality-select").value : null;
   }
 
   // ---- field checks: the Param table's bounds, beside the field --------------------------------
@@ -424,6 +428,7 @@
       if (!checkAll()) { msg($("config-msg"), "not sent: fix the marked field", true); return; }
       body = {
         method, params: readParams(),
+        ...(readTier() ? { quality: readTier() } : {}),
         display: { gain_mode: $("gain-mode").value, gain: Number($("gain").value) || null },
         max_fps: Number($("max-fps").value),
       };
@@ -435,7 +440,7 @@
       const rebuild = !state.config || state.config.method !== c.method || body.params === undefined;
       state.config = c; state.applied++;
       if (state.pinned) state.pinned.aligned = 0;  // a new config: its frames are aligned again
-      if (rebuild) buildParams(c.method, c.params);
+      if (rebuild) buildParams(c.method, c.params, c.quality);
       for (const el of document.querySelectorAll(".field-err")) el.textContent = "";
       for (const el of document.querySelectorAll(".invalid")) el.classList.remove("invalid");
       msg($("config-msg"), c.__status === 202 || c.state === "pending"
@@ -462,8 +467,7 @@
     const p = $("preset-select").value;
     if (!m || p === "custom") return;
     const vals = Object.assign(paramDefaults(m), p === "defaults" ? {} : m.presets[p]);
-    if (QUALITY in m.params) vals[QUALITY] = $("quality-select").value;
-    buildParams(m.name, vals);
+    buildParams(m.name, vals, readTier());
     scheduleApply(0);
   });
   $("quality-select").addEventListener("change", () => scheduleApply(0));
@@ -511,7 +515,7 @@
     const c = await api("/api/config");
     state.config = c;
     $("method-select").value = c.method;
-    buildParams(c.method, c.params);
+    buildParams(c.method, c.params, c.quality);
     $("gain-mode").value = c.display.gain_mode;
     if (c.display.gain) $("gain").value = c.display.gain;
     else if (c.effective_gain) $("gain").value = c.effective_gain;

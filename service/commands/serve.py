@@ -20,6 +20,7 @@ from cfsr.cli._common import add_pool_arguments, available_memory, count_type
 from cfsr.cli._extras import require_extra
 from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
 from cfsr_live.service import sources
+from cfsr_live.service.config import QUALITIES
 from cfsr_live.service.frameslot import FRAME_PREFIX
 from cfsr_live.service.safefs import FolderLock
 from cfsr_live.service.security import install_log_redaction
@@ -102,6 +103,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=_bounded(MIN_SPEED, MAX_SPEED, "x real time"),
                    default=1.0, help=f"replay speed, {MIN_SPEED:g}..{MAX_SPEED:g} (1 = real time)")
     p.add_argument("--no-loop", action="store_true", help="stop at the end of a replay")
+    p.add_argument("--quality", choices=QUALITIES, default="auto",
+                   help="CFSR's tier: auto (full when --max-fps allows it, fast frames between; "
+                   "default), full or fast; other methods have none")
     p.add_argument("--max-fps", type=_bounded(*MAX_FPS_RANGE, "frames/s"), default=30.0,
                    help=f"most frames/s published, {fps_lo:g}..{fps_hi:g} (default 30)")
     add_pool_arguments(
@@ -163,6 +167,7 @@ def build_settings(args: argparse.Namespace):
         loop=not args.no_loop,
         replay_mode=_replay_mode(args.replay_mode),
         method=args.method,
+        quality=args.quality,
         max_fps=args.max_fps,
         ring_seconds=args.ring_seconds,
         ring_max_bytes=args.ring_max_mb << 20,

@@ -7,6 +7,7 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, HTTPException, Response
 
+from cfsr.methods.registry import get_method, methods
 from cfsr_live.service.body import short
 from cfsr_live.service.config import ConfigChange
 from cfsr_live.service.deps import RuntimeDep, require_token
@@ -20,8 +21,6 @@ def check_param_types(method: str, params: dict[str, Any]) -> None:
     JSON type must be its own (a number for a numeric parameter, ``true`` and ``"32"`` are
     not), and its value in range. ValueError naming the parameter; unknown names and
     methods are the method's own check to name, with the known ones."""
-    from cfsr.methods.registry import get_method
-
     try:
         table = get_method(method).params
     except ValueError:
@@ -34,8 +33,6 @@ def check_param_types(method: str, params: dict[str, Any]) -> None:
 @router.get("/api/methods", response_model=list[MethodInfo],
             summary="reconstruction methods with their parameters")
 async def list_methods() -> list[dict]:
-    from cfsr.methods.registry import methods
-
     return list(methods().values())
 
 
@@ -58,20 +55,23 @@ async def get_config(rt: RuntimeDep) -> dict:
                       "description": "stored and sent, but the worker has not answered yet "
                       "(busy, e.g. compiling); `state` is pending"},
                 422: {"description": "unknown method, parameter out of range (the message "
-                      "names it and its range), or a configuration the worker could not "
+                      "names it and its range), CFSR's tier among the parameters (it is "
+                      "the field quality), or a configuration the worker could not "
                       "apply (it keeps the previous one, which stays stored)"},
             })
 async def put_config(body: ConfigUpdate, rt: RuntimeDep, response: Response) -> dict:
     try:
-        if body.params:
-            check_param_types(body.method or rt.config.method.method, body.params)
-        # in a thread: it waits (a few seconds at most) for the worker's answer
-        change = ConfigChange(
+        change = ConfigChange(  # refuses the tier among the parameters, naming its field
             method=body.method,
             params=body.params,
             display=body.display.model_dump() if body.display else None,
             max_fps=body.max_fps,
+            defects=body.defects,
+            quality=body.quality,
         )
+        if body.params:
+            check_param_types(body.method or rt.config.method.method, body.params)
+        # in a thread: it waits (a few seconds at most) for the worker's answer
         out = await asyncio.to_thread(rt.set_config, change)
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from exc
