@@ -50,7 +50,13 @@ from typing import Any
 
 import numba
 from numba.core import event
-from numba.core.caching import CompileResultCacheImpl, FunctionCache, _CacheLocator
+from numba.core.caching import (
+    CompileResultCacheImpl,
+    FunctionCache,
+    UserProvidedCacheLocator,
+    UserWideCacheLocator,
+    _CacheLocator,
+)
 
 __all__ = ["njit", "activity", "CompileActivity", "on_compile", "kernel_name", "waiting_for"]
 
@@ -120,16 +126,30 @@ def _stamp(path: Path) -> bytes:
 
 
 class _StampedLocator(_CacheLocator):
-    """numba's own locator (where the cache lives) with :func:`_stamp` as the source stamp."""
+    """numba's own locator with :func:`_stamp` as the source stamp, and, in a cache folder
+    shared by every copy of the package (``NUMBA_CACHE_DIR``, or numba's per-user folder),
+    the kernel's entry kept under its module's name and stamp instead of its file's path.
 
-    def __init__(self, inner: _CacheLocator, py_file: str) -> None:
+    numba files a kernel under a hash of its source folder, so the same code installed at
+    another path (a wheel's venv beside the checkout it was built from) compiled every kernel
+    again into a folder of its own. Keyed by content, identical code shares one compiled
+    kernel (and its compile lock), and different code sits beside it, each still checked
+    against its stamp by numba's index. A ``__pycache__`` beside the module stays numba's.
+    """
+
+    def __init__(self, inner: _CacheLocator, py_file: str, module: str) -> None:
         self._inner, self._py_file = inner, Path(py_file).resolve()
-
-    def ensure_cache_path(self) -> None:
-        self._inner.ensure_cache_path()
+        self._path = inner.get_cache_path()
+        if isinstance(inner, (UserProvidedCacheLocator, UserWideCacheLocator)):
+            try:
+                key = _stamp(self._py_file).hex()[:24]
+            except (OSError, ValueError, SyntaxError):  # not a file of the package
+                pass
+            else:
+                self._path = os.path.join(os.path.dirname(self._path), f"{module}-{key}")
 
     def get_cache_path(self) -> str:
-        return self._inner.get_cache_path()
+        return self._path
 
     def get_source_stamp(self) -> Any:
         try:
@@ -150,7 +170,8 @@ class _StampedImpl(CompileResultCacheImpl):
         super().__init__(py_func)
         import inspect
 
-        self._locator = _StampedLocator(self._locator, inspect.getfile(py_func))
+        self._locator = _StampedLocator(self._locator, inspect.getfile(py_func),
+                                        py_func.__module__)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -126,6 +126,46 @@ def test_the_stamp_follows_the_modules_a_kernel_is_built_from(tmp_path, monkeypa
     assert stamp() != second
 
 
+_LOAD_MIX64 = textwrap.dedent(
+    """
+    import json, numpy as np
+    import cfsr, cfsr._splitmix as m
+    from cfsr._jit import activity
+    m.mix64(np.uint64(1))
+    a = activity()
+    print(json.dumps({"file": cfsr.__file__, "compiled": a.compiled, "loaded": a.loaded}))
+    """
+)
+
+
+def test_copies_of_the_same_code_at_other_paths_share_one_compile(tmp_path):
+    """The same sources at another path (a wheel's venv beside its checkout) load the kernel
+    the first copy compiled instead of compiling it again; a copy whose code differs compiles
+    its own, beside it, and the first copy's entry still loads after that."""
+    import shutil
+
+    ignore = shutil.ignore_patterns("__pycache__")
+    for name in ("a", "b", "edited"):
+        shutil.copytree(Path(_jit.__file__).parent, tmp_path / name / "cfsr", ignore=ignore)
+    helper = tmp_path / "edited" / "cfsr" / "_splitmix.py"
+    helper.write_text(helper.read_text() + "\n# an edit\n")
+
+    def run(name: str) -> tuple[int, int]:
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+               "PYTHONPATH": str(tmp_path / name)}
+        r = subprocess.run([sys.executable, "-c", _LOAD_MIX64], capture_output=True,
+                           text=True, timeout=120, env=env, cwd=tmp_path)
+        assert r.returncode == 0, r.stderr[-3000:]
+        got = json.loads(r.stdout.strip().splitlines()[-1])
+        assert got["file"] == str(tmp_path / name / "cfsr" / "__init__.py"), got
+        return got["compiled"], got["loaded"]
+
+    assert run("a") == (1, 0)
+    assert run("b") == (0, 1), "an identical copy at another path compiled again"
+    assert run("edited") == (1, 0), "a copy with other code loaded the first copy's kernel"
+    assert run("a") == (0, 1)
+
+
 def test_a_failed_compile_releases_its_lock(tmp_path, monkeypatch):
     """A kernel whose compile fails leaves no lock held, so the next process is not blocked
     for the life of this one."""
