@@ -182,7 +182,8 @@ class ReplayDevice(Source):
         self._clock = 0  # step index of the next block
         self._pending_steps = 0
         self._discontinuity = False
-        self._t_ref = 0.0
+        #: host time the schedule counts from (None: from the next read, see :meth:`open`)
+        self._t_ref: float | None = None
         self._clock_ref = 0
         self._ended = False
         self._loops = 0
@@ -203,7 +204,9 @@ class ReplayDevice(Source):
                 self._reader = DatReader(
                     self._region[0], self.rec.layout.frame_bytes, offset=self._region[1]
                 )
-            self._reset_pacing()
+            # the schedule starts at the first read, not here: what the service does between
+            # opening a source and reading it (its ring, its threads) is no reader's lag
+            self._t_ref = None
             if self._failed:
                 self.state = SourceState.ERROR
             else:
@@ -306,6 +309,8 @@ class ReplayDevice(Source):
                 if self.mode is ReplayMode.UNPACED:
                     return self._emit(n, 0)
                 rate = self.info.rate_hz * self._speed
+                if self._t_ref is None:
+                    self._reset_pacing()
                 due = self._t_ref + (self._clock + n - self._clock_ref) / rate
                 if due > now:
                     if remaining <= 0:

@@ -153,6 +153,10 @@ class SpikeRing:
         if size > max_bytes:
             raise ValueError(f"a ring of {size} bytes is over the ring's cap of {max_bytes} bytes")
         path, mm = create_shared_file(RING_PREFIX, size, directory)
+        # every page faulted in now (the file reads as zeros: a zero written per page), not
+        # during the stream's first lap, where each block took 8 ms instead of under 1 and a
+        # paced replay fell 0.1 s behind at every start
+        np.frombuffer(mm, np.uint8)[:: mmap.PAGESIZE] = 0
         hdr = np.frombuffer(mm, np.int64, _HEADER_BYTES // 8, 0)
         hdr[_H_NSLOTS], hdr[_H_SLOTFRAMES], hdr[_H_FRAMEBYTES] = n_slots, slot_frames, frame_bytes
         hdr[_H_BLOCKING] = int(blocking)

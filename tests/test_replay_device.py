@@ -123,6 +123,7 @@ def test_paced_behind_schedule_skips_and_counts(dat):
     clk = FakeClock()
     dev = ReplayDevice(dat, mode="paced", block_frames=40, clock=clk, max_lag_s=0.01)
     dev.open()
+    assert dev.read_block(0) is None  # the schedule starts at the first read
     clk.t += 0.001
     assert dev.read_block(0).index == 0
     clk.t += 0.5  # the reader stalled for half a second
@@ -132,6 +133,22 @@ def test_paced_behind_schedule_skips_and_counts(dat):
     assert dev.counters().replay_behind_frames == b.lost_before
     # after the skip it is back on schedule: nothing more is due
     assert dev.read_block(0) is None or dev.read_block(0) is None
+
+
+
+def test_the_schedule_starts_at_the_first_read_not_at_open(dat):
+    """What a service does between opening a replay and reading it (making its ring, starting
+    its threads) is no reader's lag: the schedule counts from the first read. It counted from
+    the open, so a start that took over max_lag_s skipped frames nobody had been late for."""
+    clk = FakeClock()
+    dev = ReplayDevice(dat, mode="paced", block_frames=40, clock=clk, max_lag_s=0.01)
+    dev.open()
+    clk.t += 0.5  # the service made its ring and started the acquisition thread
+    assert dev.read_block(0) is None  # the first block is due 1 ms after the first read
+    clk.t += 0.001
+    b = dev.read_block(0)
+    assert b.index == 0 and b.lost_before == 0 and not b.flags & BlockFlags.LOSS
+    assert dev.counters().replay_behind_frames == 0
 
 
 def test_capability_discovery_replay_has_no_camera(dat):
