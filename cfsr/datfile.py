@@ -22,20 +22,16 @@ from typing import Any
 
 import numpy as np
 
+from cfsr import sidecar
 from cfsr._bits import pack_frames
 from cfsr.layout import STEP_RATE_HZ, Layout
-from cfsr.sidecar import (  # the sidecar's names, also reachable from here as before
+from cfsr.sidecar import *  # noqa: F403 - the sidecar's public names, reachable from here
+from cfsr.sidecar import (  # those this module uses itself
     MAX_FRAME_PIXELS,
-    MAX_FRAMES,
-    MAX_GAIN,
     MAX_RATE_HZ,
     MAX_SIDE_PX,
-    MAX_SIDECAR_BYTES,
-    MAX_SIDECAR_DIGITS,
-    MIN_GAIN,
     MIN_RATE_HZ,
     SIDECAR_RESERVE_BYTES,
-    SIDECAR_VERSION,
     FileShrankError,
     SpikeFileError,
     _as_number,
@@ -47,35 +43,17 @@ from cfsr.sidecar import (  # the sidecar's names, also reachable from here as b
     read_sidecar,
     sidecar_path,
     validate_sidecar,
-    write_json_atomic,
 )
 from cfsr.spikes import SpikeRecording
 
 __all__ = [
-    "SpikeFileError",
     "read_dat",
     "write_dat",
     "read_npz",
     "read_spikes",
-    "sidecar_path",
-    "read_sidecar",
-    "validate_sidecar",
-    "file_kind",
     "DatReader",
-    "FileShrankError",
     "DatWriter",
-    "write_json_atomic",
-    "MAX_SIDE_PX",
-    "MAX_FRAME_PIXELS",
-    "MIN_RATE_HZ",
-    "MAX_RATE_HZ",
-    "MIN_GAIN",
-    "MAX_GAIN",
-    "MAX_FRAMES",
-    "MAX_SIDECAR_BYTES",
-    "MAX_SIDECAR_DIGITS",
-    "SIDECAR_RESERVE_BYTES",
-    "SIDECAR_VERSION",
+    *sidecar.__all__,  # the sidecar's names, reachable from here as before
 ]
 
 

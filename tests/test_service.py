@@ -117,9 +117,9 @@ def test_config_switch_every_method(server):
         f = ws_frames(server, 1, method=name, timeout=180)[0]
         seen[name] = f["masks"].keys()
         declared = next(m for m in methods if m["name"] == name)["masks"]
-        for mk in ("coarse", "fine"):
-            if mk in declared:
-                assert mk in f["masks"], f"{name} declared mask {mk} but sent none"
+        for mask in ("coarse", "fine"):
+            if mask in declared:
+                assert mask in f["masks"], f"{name} declared mask {mask} but sent none"
     r = server.put("/api/config", json={"method": "no-such-method"})
     assert r.status_code == 422 and "no-such-method" in r.json()["detail"][0]["msg"]
     r = server.put("/api/config", json={"method": "tfp", "params": {"bogus": 1}})

@@ -52,11 +52,11 @@ from cfsr.methods.tfp import span_rate
 
 
 class HistUnion(NamedTuple):
-    """The union ``[u_lo, u_hi)`` of the K distinction windows, their length ``span`` (T)
+    """The union ``[start, end)`` of the K distinction windows, their length ``span`` (T)
     and ``theta`` (Eq. 5-6)."""
 
-    u_lo: int
-    u_hi: int
+    start: int
+    end: int
     span: int
     theta: int
 
@@ -90,12 +90,13 @@ NO_COARSE = 1 << 30
 
 
 class Daisi(NamedTuple):
-    """DAISI at ``c`` over ``c +- dspan`` (Eq. 10-14), spikes read in ``[d_lo, d_hi)``."""
+    """DAISI at ``c`` over ``c +- dspan`` (Eq. 10-14), spikes read in ``[read_start,
+    read_end)``."""
 
     c: int
     dspan: int
-    d_lo: int
-    d_hi: int
+    read_start: int
+    read_end: int
     logs: np.ndarray  #: float64: :func:`cfsr.methods.cfsr.daisi.log_table`
 
 
@@ -105,7 +106,7 @@ def static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
     """First pass of the history scan: what a static window needs, nothing more.
 
     Per pixel, on the words of ``src`` (:class:`~cfsr._words.Words`): ``ub``, the distinct
-    ISIs of the union ``[u_lo, u_hi)`` of the K distinction windows (walk stopped at
+    ISIs of the union ``[union_start, union_end)`` of the K distinction windows (walk stopped at
     ``theta``): every window's ISI set is a subset, so ``ub < theta`` proves the pixel static
     in all K coarse masks;
     the TFP rates ``tfp[j]`` (Eq. 4: spikes in ``[bounds[ia[j]], bounds[ib[j]])`` over the
@@ -119,9 +120,9 @@ def static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
     takes the first of them, and ``ub`` and DAISI are 0.
     """
     packed, geo, lo, hi = src
-    u_lo, u_hi, span, theta = union
+    union_start, union_end, span, theta = union
     bounds, ia, ib, isi_est, cents, m = spans
-    c, dspan, d_lo, d_hi, logs = dai
+    c, dspan, daisi_start, daisi_end, logs = dai
     store, bases = kept
     h, w = ub.shape
     every = active.shape[0] == 0
@@ -146,8 +147,10 @@ def static_kernel(src, union, spans, dai, ub, tfp, daisi, kept, active):
             prefix_counts(words, r, nw, prefix)
             j0 = 0
             if every or active[y, x]:
-                ub[y, x] = distinct_in_words(words, r, nw, lo, u_lo, u_hi, span, big, theta)
-                daisi[y, x] = daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs)
+                ub[y, x] = distinct_in_words(words, r, nw, lo, union_start, union_end,
+                                             span, big, theta)
+                daisi[y, x] = daisi_words(words, r, lo, c, dspan, daisi_start, daisi_end,
+                                          loc, logs)
                 for i in range(nb):
                     before[i] = count_range(words, r, lo, prefix, lo, bounds[i])
             else:  # a static tile: the spans at t alone

@@ -82,28 +82,30 @@ def daisi_from_times(tv, a_lo, a_hi, logs):  # pragma: no cover - numba
 
 
 @njit(helper=True)
-def daisi_words(words, r, lo, c, dspan, d_lo, d_hi, loc, logs):  # pragma: no cover - numba
+def daisi_words(words, r, lo, c, dspan, read_start, read_end, loc, logs):
+    # pragma: no cover - numba
     """:func:`daisi_from_times` at ``c +- dspan`` from the only spikes it reads: those in
-    ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[d_lo, d_hi)``, read
-    from spike words (:mod:`cfsr._words`): CFSR's history scan computes DAISI at t this way in
-    the same walk of every pixel's spikes (:mod:`cfsr.methods.cfsr._history_kernels`)."""
+    ``[c - dspan - 1, c + dspan]`` and two on each side, all inside ``[read_start,
+    read_end)``, read from spike words (:mod:`cfsr._words`): CFSR's history scan computes
+    DAISI at t this way in the same walk of every pixel's spikes
+    (:mod:`cfsr.methods.cfsr._history_kernels`)."""
     a_lo = c - dspan
     a_hi = c + dspan
     nl = 0
-    p1 = prev_spike(words, r, lo, a_lo - 2, d_lo)
+    p1 = prev_spike(words, r, lo, a_lo - 2, read_start)
     if p1 >= 0:
-        p2 = prev_spike(words, r, lo, p1 - 1, d_lo)
+        p2 = prev_spike(words, r, lo, p1 - 1, read_start)
         if p2 >= 0:
             loc[nl] = p2
             nl += 1
         loc[nl] = p1
         nl += 1
-    nl += range_times(words, r, lo, max(d_lo, a_lo - 1), min(d_hi, a_hi + 1), loc[nl:])
-    n1 = next_spike(words, r, lo, a_hi + 1, d_hi)
+    nl += range_times(words, r, lo, max(read_start, a_lo - 1), min(read_end, a_hi + 1), loc[nl:])
+    n1 = next_spike(words, r, lo, a_hi + 1, read_end)
     if n1 >= 0:
         loc[nl] = n1
         nl += 1
-        n2 = next_spike(words, r, lo, n1 + 1, d_hi)
+        n2 = next_spike(words, r, lo, n1 + 1, read_end)
         if n2 >= 0:
             loc[nl] = n2
             nl += 1
