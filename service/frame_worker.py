@@ -16,7 +16,7 @@ import time
 from collections import deque
 from typing import Any
 
-from cfsr.defects import DefectCorrector
+from cfsr.defects import DefectCorrector, DefectMap
 from cfsr.display import auto_gain, to_display
 from cfsr.layout import Layout
 from cfsr.pool import FramePool, PoolError, TaskError
@@ -29,7 +29,7 @@ from cfsr_live.service.ladder import LadderSteps
 from cfsr_live.service.pacing import FrameTask, late_after_s, pick_tier, tiers_of
 from cfsr_live.service.priority import FramePriority
 from cfsr_live.service.schema import DEFECT_STATES, DEFECTS_MASK, quality_code
-from cfsr_live.service.worker_messages import ConfigAnswer
+from cfsr_live.service.worker_messages import ConfigAnswer, DefectMapFound
 from cfsr_live.shm.ring import SpikeRing
 
 __all__ = ["TASK_HANG_S", "UNWATCHED_FPS", "FrameWorker"]
@@ -77,6 +77,10 @@ class FrameWorker(LadderSteps):
         self.reader = None
         self.rec = None
         self.layout = None
+        #: the source's given defect map (WorkerConfig.defect_map) the corrector started from,
+        #: and the corrector version last sent to the supervisor (for recordings)
+        self._defects_given: Any = ()
+        self._defects_sent = -1
         counters = self.slot.counters()
         counters[:] = 0
         # the record in shared memory (indexing a structured array gives a view): a counter
@@ -166,7 +170,12 @@ class FrameWorker(LadderSteps):
         self.ring = SpikeRing.attach(ring_path)
         self.layout = layout
         self._restart_clock()  # a new ring is a new source: its steps count from its own start
-        self.reader = self.ring.reader(start="latest", register=self.config.deterministic, keep=1)
+        # from the oldest block held, not the head: a paused replay (paused before our first
+        # frame, or sought and stepped before we started) writes nothing more, and its blocks
+        # already in the ring are what there is to show; older ones than a frame needs are
+        # skipped at the first ingest (worker_skip)
+        self.reader = self.ring.reader(start="oldest", register=self.config.deterministic, keep=1)
+        self._defects_given = ()  # a new source: its sensor's map is learnt afresh
         self._build()
 
     def _build(self, cfg: WorkerConfig | None = None) -> None:
@@ -182,14 +191,14 @@ class FrameWorker(LadderSteps):
         tiers = tiers_of(cfg)
         widest = max(tiers.values(), key=lambda m: sum(m.window))
         if self.rec is None or self.rec.layout != self.layout:
-            # hot and dead pixels, learnt from the stream, corrected before every method
-            rec = StreamingReconstructor(widest, self.layout, slack=1024,
-                                         defects=DefectCorrector(self.layout))
+            # hot and dead pixels corrected before every method (its corrector: _set_defects)
+            rec = StreamingReconstructor(widest, self.layout, slack=1024)
             if self.rec is not None:
                 self._gaps_base += self.rec.gaps
             self.rec = rec
         else:
             self.rec.set_method(widest)
+        self._set_defects(cfg)
         self.config = cfg
         self._tiers = tiers
         self._reset_output()
@@ -262,16 +271,34 @@ class FrameWorker(LadderSteps):
         self._put_defects()
         return pushed
 
+    def _set_defects(self, cfg: WorkerConfig) -> None:
+        """The corrector of ``cfg``: the source's given map (its sidecar's: a calibration, or
+        a map learnt before) kept as is, else one learnt from the stream; a new given map or a
+        new source starts a new one. Switched on or off by ``cfg.defects``."""
+        if self.rec.defects is None or cfg.defect_map != self._defects_given:
+            given = (DefectMap.from_dict(cfg.defect_map, self.layout.shape)
+                     if cfg.defect_map else None)
+            self.rec.defects = DefectCorrector(self.layout, given)  # given: kept as is
+            self._defects_given = cfg.defect_map
+            self._defects_sent = -1
+        self.rec.defects.enabled = cfg.defects
+
     def _put_defects(self) -> None:
-        """The defect map's state in the counters (the status's ``defects``)."""
+        """The defect map's state in the counters (the status's ``defects``); a changed map
+        to the supervisor, which a recording keeps in its sidecar."""
         d = self.rec.defects if self.rec is not None else None
         if d is None:
             return
+        if d.version != self._defects_sent and (d.map.n_hot or d.map.n_dead or d.inv_gain
+                                                is not None):
+            self._defects_sent = d.version
+            self.evt_q.put(DefectMapFound(d.current().to_dict()))
         st = d.state()
         self.put("defects_state", DEFECT_STATES.index(st["state"]))
         self.put("defects_hot", st["hot"])
         self.put("defects_dead", st["dead"])
         self.put("defects_confidence", st["confidence"])
+        self.put("defects_gain", int(st["gain"] and d.enabled))
 
     def _start_due(self, ahead_s: float) -> bool:
         """Whether a frame (or a stand-in) may start within ``ahead_s`` seconds: the pace
@@ -430,7 +457,7 @@ class FrameWorker(LadderSteps):
             tier = task.quality if "quality" in self.config.method.params else ""
             self._publish(t, out, self._tiers[task.quality].method, task.arrival, ms,
                           timed=not task.cold, quality=tier)
-            self.bump("q_" + task.quality)
+            self.bump("shown_" + task.quality)
             shown = True
         return shown
 
@@ -460,12 +487,14 @@ class FrameWorker(LadderSteps):
         """Show frame ``t``; ``timed``: its compute and latency join the status's averages
         (not a process's first frame of a method, whose time holds the kernels' loading);
         ``quality``: the tier that made it ("" for a method without tiers, or a stand-in)."""
+        d = self.rec.defects if self.rec is not None else None
+        if d is not None:  # a flat-field calibration's gain divided out (every method)
+            out = d.flatten(out)
         gain = self.config.gain
         g = float(gain) if gain else auto_gain(out.rate)
         img = to_display(out.rate, g)
         latency_ms = (time.monotonic() - arrival) * 1e3
         masks = out.masks
-        d = self.rec.defects if self.rec is not None else None
         if d is not None and d.enabled and (d.map.n_hot or d.map.n_dead):
             masks = {**masks, DEFECTS_MASK: d.map.mask}
         self.slot.publish(
@@ -479,7 +508,7 @@ class FrameWorker(LadderSteps):
             latency_ms=latency_ms,
             quality=quality,
         )
-        self.put("q_shown", quality_code(quality))
+        self.put("shown_tier", quality_code(quality))
         self._last_shown = t
         self.bump("frames_out")
         if not timed:

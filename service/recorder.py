@@ -28,6 +28,7 @@ import os
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -39,6 +40,7 @@ from cfsr.datfile import (
     sidecar_path,
     validate_sidecar,
 )
+from cfsr.defects import DefectMap
 from cfsr.layout import Layout
 from cfsr_live.driver.source import BlockFlags
 from cfsr_live.service.safefs import create_exclusive, name_taken, write_bytes_at
@@ -271,10 +273,15 @@ class Recorder:
         max_frames: int | None = None,
         max_bytes: int | None = None,
         dir_fd: int | None = None,
+        defects: Callable[[], dict[str, Any] | None] | None = None,
     ) -> None:
         """Record into ``path`` (created in the open folder ``dir_fd``, else in its parent
-        folder); FileExistsError when the name or its sidecar's exists in any form."""
+        folder); FileExistsError when the name or its sidecar's exists in any form.
+        ``defects``: the defect map the live worker corrects with, now (JSON form of
+        :class:`cfsr.defects.DefectMap`, or None); asked when the recording ends and kept
+        in its sidecar, so a replay of it starts corrected."""
         self.ring = ring
+        self._defects = defects
         self.path = Path(path)
         self.layout = layout
         fb = layout.frame_bytes
@@ -379,6 +386,7 @@ class Recorder:
                 "stop_reason": self.stop_reason,
             }
         )
+        self._keep_defects()
         try:
             if self.frames:
                 self._writer.close()
@@ -389,6 +397,19 @@ class Recorder:
             self.error = (self.error + "; " if self.error else "") + f"sidecar not final: {exc}"
         self._reader.close()
         os.close(self._space_fd)
+
+    def _keep_defects(self) -> None:
+        """The worker's defect map at the end, in the sidecar (checked: one that does not
+        fit this recording, or a broken one, is left out and said in ``record_error``)."""
+        try:
+            dmap = self._defects() if self._defects is not None else None
+            if dmap is not None:
+                DefectMap.from_dict(dmap, self.layout.shape, where="the worker's defect map")
+                self._writer.meta["defects"] = dmap
+        except Exception as exc:  # noqa: BLE001 - the recording itself is fine
+            note = f"defect map not kept: {exc}"
+            self._writer.meta["record_error"] = "; ".join(
+                e for e in (self._writer.meta.get("record_error"), note) if e)
 
     def stop(self, timeout: float = 10.0) -> RecordStatus:
         """Stop recording (the file is closed and its sidecar written) and report."""
@@ -401,6 +422,7 @@ class Recorder:
 
     def status(self) -> RecordStatus:
         """The recorder's report (``recording`` in ``GET /api/status``, ``GET /api/record``)."""
+        # deferred: the status models need pydantic, which the base install's `cfsr record` lacks
         from cfsr_live.service.status import RecordStatus
 
         running = self.running  # read once: a stop reason shows only once it has stopped

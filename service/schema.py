@@ -47,6 +47,9 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.methods import get_method
+from cfsr.methods import methods as registered
+
 __all__ = [
     "COUNTER_DTYPE",
     "MASK_ALPHA",
@@ -112,9 +115,9 @@ class WorkerCounters:
         "computing, 0 when none is pending (s; on a machine's first use it waits on numba)")
     workers: int = _counter("reconstruction processes in the worker's pool", int)
     threads: int = _counter("numba/OpenCV threads per process", int)
-    q_full: int = _counter("frames shown at CFSR's full quality tier (every frame of other "
-                           "methods)", int)
-    q_fast: int = _counter("frames shown at CFSR's fast tier", int)
+    shown_full: int = _counter("frames shown at CFSR's full quality tier (every frame of "
+                               "other methods)", int)
+    shown_fast: int = _counter("frames shown at CFSR's fast tier", int)
     dropped_late: int = _counter("frames computed but not shown: too late, or under a "
                                  "replaced configuration or source (no spike data lost)", int)
     dropped_order: int = _counter("frames computed but not shown: a newer step was shown "
@@ -124,8 +127,8 @@ class WorkerCounters:
         "2 CSR)", int
     )
     fallback_frames: int = _counter("stand-in frames shown that way", int)
-    q_shown: int = _counter("the tier that made the frame shown last (0 none, 1 full, 2 fast)",
-                            int)
+    shown_tier: int = _counter(
+        "the tier that made the frame shown last (0 none, 1 full, 2 fast)", int)
     viewers: int = _counter("clients watching the frames, as the worker was last told (with "
                             "none it computes one frame a second)", int)
     pool_nice: int = _counter(
@@ -138,6 +141,8 @@ class WorkerCounters:
     defects_dead: int = _counter("pixels the map calls dead (corrected before the method)", int)
     defects_confidence: float = _counter(
         "the map's confidence: steps counted over its warm-up of 2,000 (0..1)")
+    defects_gain: int = _counter(
+        "1 when a flat-field calibration's per-pixel gain is divided out of every output", int)
 
     @classmethod
     def from_record(cls, rec: np.void | np.ndarray) -> WorkerCounters:
@@ -163,9 +168,6 @@ def display_masks() -> tuple[str, ...]:
     """The names of every mask a registered method declares, in registration order, each
     once, then the defect map's (:data:`DEFECTS_MASK`): ``("coarse", "fine", "motion",
     "defects")`` with the built-in methods."""
-    from cfsr.methods import get_method
-    from cfsr.methods import methods as registered
-
     out: list[str] = []
     for name in registered():
         for m in get_method(name).masks:
@@ -299,6 +301,7 @@ def decode_ws_message(msg: bytes, mask_names: tuple[str, ...]) -> dict[str, Any]
 def schema_document(mask_names: tuple[str, ...]) -> dict[str, Any]:
     """What ``GET /api/schema`` returns: the frame message's layout, the mask names in
     plane order with their overlay colours, the heat colour map and the counters."""
+    # deferred: a cycle (render imports this module's mask colours)
     from cfsr_live.service.render import HEAT_LUT
 
     return {

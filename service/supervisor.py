@@ -42,6 +42,7 @@ from cfsr_live.service.worker_messages import (
     ConfigAck,
     ConfigAnswer,
     Configure,
+    DefectMapFound,
     HoldStep,
     Inject,
     Ready,
@@ -61,6 +62,7 @@ def _worker_entry(*args: Any) -> None:
     """The worker process's entry point (runs in the spawned child): the one import of the
     worker's module, at the process boundary, so the web process, which only supervises,
     never loads the reconstruction (pool, kernels)."""
+    # deferred: the worker's modules load in the spawned worker only, never in the web process
     from cfsr_live.service.worker_loop import worker_main
 
     worker_main(*args)
@@ -103,6 +105,9 @@ class WorkerSupervisor:
         self.hang_timeout = hang_timeout
         #: what the first frame under the config waits on, as the worker last reported
         self.compiling: CompileProgress | None = None
+        #: the defect map the worker corrects with, as it last reported it (JSON form of
+        #: cfsr.defects.DefectMap), kept in a live recording's sidecar; None: none yet
+        self.defect_map: dict[str, Any] | None = None
         self._ctx = mp.get_context("spawn")
         self._proc: mp.process.BaseProcess | None = None
         self._cmd_q = None
@@ -254,6 +259,7 @@ class WorkerSupervisor:
         """Make the worker read a new ring (the source changed geometry or block size)."""
         with self._lock:
             self._ring_path, self._layout = ring_path, layout
+            self.defect_map = None  # another source's sensor: the worker learns it afresh
             self._send(Attach(ring_path, layout))
 
     def set_viewers(self, count: int) -> None:
@@ -320,6 +326,8 @@ class WorkerSupervisor:
                 log.warning("worker error: %s", ev.message.splitlines()[0])
             elif isinstance(ev, Compiling):
                 self.compiling = ev.progress
+            elif isinstance(ev, DefectMapFound):
+                self.defect_map = ev.map
 
     def _monitor(self) -> None:
         backoff = 0.5
@@ -372,7 +380,7 @@ class WorkerSupervisor:
 
     #: counters that add up over the worker's restarts (a new worker starts from zero)
     CUMULATIVE = ("frames_out", "steps_ingested", "worker_skip_frames", "ring_lost_frames",
-                  "ring_overruns", "ring_torn", "gaps", "errors", "q_full", "q_fast",
+                  "ring_overruns", "ring_torn", "gaps", "errors", "shown_full", "shown_fast",
                   "dropped_late", "dropped_order", "fallback_frames")
 
     def _carry_counters(self) -> None:
@@ -407,7 +415,7 @@ class WorkerSupervisor:
         with self._lock:
             if self._shares and self._shares[-1][1] != st.config_version:
                 self._shares.clear()  # a change of mode: its shares start again
-            self._shares.append((now, st.config_version, st.q_full, st.q_fast))
+            self._shares.append((now, st.config_version, st.shown_full, st.shown_fast))
             while now - self._shares[0][0] > SHARE_WINDOW_S:
                 self._shares.popleft()
 
@@ -418,13 +426,13 @@ class WorkerSupervisor:
             if not self._shares or self._shares[0][1] != st.config_version:
                 return 0, 0
             _, _, full, fast = self._shares[0]
-        return max(0, st.q_full - full), max(0, st.q_fast - fast)
+        return max(0, st.shown_full - full), max(0, st.shown_fast - fast)
 
     def _quality(self, st: WorkerCounters) -> QualityShare:
         """CFSR's tier mode and the frames shown at each tier lately (:meth:`_recent_tiers`)."""
         full, fast = self._recent_tiers(st)
         mode = self.config.quality if "quality" in self.config.method.params else None
-        shown = QUALITY_TIERS[st.q_shown] if 0 < st.q_shown < len(QUALITY_TIERS) else None
+        shown = QUALITY_TIERS[st.shown_tier] if 0 < st.shown_tier < len(QUALITY_TIERS) else None
         return QualityShare(mode=mode, shown=shown if mode else None, full=full, fast=fast)
 
     def status(self, rate_hz: float) -> WorkerReport:
@@ -462,7 +470,7 @@ class WorkerSupervisor:
                     state=DEFECT_STATES[st.defects_state]
                     if 0 <= st.defects_state < len(DEFECT_STATES) else "off",
                     hot=st.defects_hot, dead=st.defects_dead,
-                    confidence=st.defects_confidence),
+                    confidence=st.defects_confidence, gain=bool(st.defects_gain)),
                 fallback_method=RUNG_NAMES.get(int(st.fallback)) if first else None,
                 compiling=self.compiling if first else None,
             ),

@@ -4,9 +4,10 @@ and the worker process (:mod:`cfsr_live.service.worker_loop`).
 Everything that crosses the process boundary is a small frozen dataclass (pickled by the
 queues): commands :class:`Configure`, :class:`Attach`, :class:`Inject`, :class:`Stop` to the
 worker; events :class:`Ready`, :class:`ConfigAnswer`, :class:`WorkerError` (a failed frame,
-or a fatal error) and :class:`Compiling` back. A :class:`~cfsr_live.service.config.WorkerConfig`
-was validated where it was made (in the web process) and is applied as is. This module imports
-nothing of the reconstruction, so the web process can use it without the worker's imports.
+or a fatal error), :class:`Compiling` and :class:`DefectMapFound` back. A
+:class:`~cfsr_live.service.config.WorkerConfig` was validated where it was made (in the web
+process) and is applied as is. This module imports nothing of the reconstruction, so the web
+process can use it without the worker's imports.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ __all__ = [
     "ConfigAck",
     "ConfigAnswer",
     "Configure",
+    "DefectMapFound",
     "Inject",
     "Ready",
     "HoldStep",
@@ -128,6 +130,14 @@ class Compiling:
     :class:`~cfsr_live.service.status.CompileProgress`), or None once no compile holds it."""
 
     progress: CompileProgress | None
+
+
+@dataclass(frozen=True)
+class DefectMapFound:
+    """The hot/dead pixel map the worker corrects with changed: ``map`` in its JSON form
+    (:meth:`cfsr.defects.DefectMap.to_dict`), which a recording keeps in its sidecar."""
+
+    map: dict
 
 
 class ConfigAck(NamedTuple):
