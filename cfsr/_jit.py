@@ -27,9 +27,10 @@ pool's owner so that a process busy compiling is never taken for a hung one. Wit
 compile cost of a whole run (a server and its pool, a test suite) can be added up.
 
 Kernels are plain typed loops (the pool gives the parallelism, one frame per single-threaded
-process) except the few declared ``hot``, whose frame cost needs numba's parallel loops and
-its IR inlining of helpers (:func:`njit`); helpers are inlined into hot kernels only. The
-simulator's kernels, which no pool runs, keep their parfors.
+process). The few declared ``hot`` get their helpers inlined at numba's IR (:func:`njit`) and
+borrow their arrays (:mod:`cfsr._borrow`), which is what numba's parallel loops had given
+them on one thread too, at a fraction of the compile. The simulator's kernels, which no pool
+runs, keep their parfors.
 """
 
 from __future__ import annotations
@@ -250,16 +251,15 @@ def njit(*args: Any, hot: bool = False, helper: bool = False, **options: Any) ->
     """numba's ``njit`` with cfsr's cache: ``@njit``, ``@njit(hot=True)``,
     ``@njit(helper=True)`` or ``@njit(**numba_options)``.
 
-    ``hot``: a kernel whose frame cost needs numba's parallel loops (``prange``; faster even
-    on one thread, as the pool runs it) and its helpers inlined at the IR (their array
-    arguments then cost nothing per call). Such a kernel compiles several times slower, so
-    only the few where it pays are hot (measured: ``cfsr bench --compile``, docs/speed.md).
-    ``helper``: a small function inlined into the hot kernels that call it and called from
-    the others. ``cache`` is always on (:class:`_KernelCache`); other options are numba's.
+    ``hot``: a kernel whose frame cost needs its helpers inlined at the IR (their array
+    arguments then cost nothing per call; LLVM's own inlining leaves 5-10 % of the frame).
+    It compiles a few times slower, so only the few where it pays are hot (measured:
+    ``cfsr bench --compile``, docs/speed.md). Its loops are plain; it borrows its arrays
+    (:func:`cfsr._borrow.borrow`) so that they cost no reference counting. ``helper``: a
+    small function inlined into the hot kernels that call it and called from the others.
+    ``cache`` is always on (:class:`_KernelCache`); other options are numba's.
     """
     options.pop("cache", None)
-    if hot:
-        options["parallel"] = True
     if helper:
         options["inline"] = _inline_into_hot
 

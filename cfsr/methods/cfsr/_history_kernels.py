@@ -12,8 +12,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import prange
 
+from cfsr._borrow import borrow, keep
 from cfsr._isi import search_range
 from cfsr._jit import njit
 from cfsr._words import (
@@ -191,17 +191,19 @@ def dynamic_kernel(src, wins, kept, ub, counts, isi, active):  # pragma: no cove
     :class:`~cfsr._words.Stored`) when it holds one row per image row; otherwise gathers them.
     Where ``active`` (bool ``(H, W)``, or empty: every pixel) is False, only the TFI interval at
     the last step (t) is computed (``ub`` is 0 there)."""
-    packed, geo, lo, hi = src
-    ends, span, theta, m = wins
-    store, bases = kept
+    packed, geo, lo, hi = borrow(src)
+    ends, span, theta, m = borrow(wins)
+    store, bases = borrow(kept)
+    ub, counts, isi, active = borrow((ub, counts, isi, active))
     n = packed.shape[0]
     h, w = ub.shape
     k_count = ends.shape[0]
     every = active.shape[0] == 0
     nw = n_words(lo, hi)
-    for y in prange(h):
-        big = long_isi_buffer(lo, hi)
-        words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
+    for y in range(h):
+        big_own = long_isi_buffer(lo, hi)
+        words_own, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
+        big, words = borrow((big_own, words_own))
         for x in range(w):
             r = base + step * x
             k_first = 0 if every or active[y, x] else k_count - 1
@@ -218,6 +220,7 @@ def dynamic_kernel(src, wins, kept, ub, counts, isi, active):  # pragma: no cove
                 counts[k, y, x] = distinct_in_words(
                     words, r, nw, lo, max(0, e - span + 1), e + 1, span, big, theta
                 )
+        keep((big_own, words_own))
 
 
 

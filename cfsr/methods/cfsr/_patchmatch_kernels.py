@@ -8,9 +8,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import prange
 
 from cfsr import _simd
+from cfsr._borrow import borrow, keep
 from cfsr._jit import njit
 from cfsr._simd import LANES, READ_COLS, Lanes, box6x8_update
 from cfsr._splitmix import GOLDEN, mix64
@@ -144,22 +144,24 @@ def _cost(ref, tgt, y, x, ty, tx, patch, limit):  # pragma: no cover - numba
 @njit(hot=True)
 def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
     # pragma: no cover - numba
-    """Independent full searches, one target per thread (see :func:`nnf_independent`)."""
-    ys, xs, index, keys = pixels
+    """Independent full searches, one target after the other (see :func:`nnf_independent`)."""
+    ys, xs, index, keys = borrow(pixels)
+    scans, radius = borrow((plan.scans, plan.radius))
+    ref, targets, offb, costb = borrow((ref, targets, off, cost))
     patch = search.patch
     seed = search.seed
     n_t = targets.shape[0]
     h = targets.shape[1] - patch + 1
     w = targets.shape[2] - patch + 1
     m = ys.shape[0]
-    for i in prange(n_t):
+    for i in range(n_t):
         tgt = targets[i]
-        iters = plan.scans[i]
-        max_r = plan.radius[i]
+        iters = scans[i]
+        max_r = radius[i]
         for j in range(m):
-            off[i, j, 0] = 0
-            off[i, j, 1] = 0
-            cost[i, j] = _cost(ref, tgt, ys[j], xs[j], ys[j], xs[j], patch, np.inf)
+            offb[i, j, 0] = 0
+            offb[i, j, 1] = 0
+            costb[i, j] = _cost(ref, tgt, ys[j], xs[j], ys[j], xs[j], patch, np.inf)
         for it in range(iters):
             fwd = it % 2 == 0
             d = -1 if fwd else 1
@@ -167,9 +169,9 @@ def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
                 j = jj if fwd else m - 1 - jj
                 y = ys[j]
                 x = xs[j]
-                by = off[i, j, 0]
-                bx = off[i, j, 1]
-                best = cost[i, j]
+                by = offb[i, j, 0]
+                bx = offb[i, j, 1]
+                best = costb[i, j]
                 # propagation from the already-visited horizontal and vertical neighbours
                 for k in range(2):
                     ny = y + d if k == 1 else y
@@ -179,8 +181,8 @@ def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
                     nj = index[ny, nx]
                     if nj < 0:
                         continue
-                    cy = off[i, nj, 0]
-                    cx = off[i, nj, 1]
+                    cy = offb[i, nj, 0]
+                    cx = offb[i, nj, 1]
                     if cy == by and cx == bx:
                         continue
                     ty = _clamp(y + cy, 0, h - 1)
@@ -203,9 +205,9 @@ def _nnf_independent_kernel(ref, targets, pixels, plan, search, off, cost):
                             by = ty - y
                             bx = tx - x
                     r //= 2
-                off[i, j, 0] = by
-                off[i, j, 1] = bx
-                cost[i, j] = best
+                offb[i, j, 0] = by
+                offb[i, j, 1] = bx
+                costb[i, j] = best
     return off, cost
 
 
@@ -337,33 +339,34 @@ def _block_bests(cand, xs, p0, p1, boy, box):  # pragma: no cover - numba
 def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
     # pragma: no cover - numba
     """The temporal schedule by bands of blocks (see :func:`nnf_temporal`)."""
-    ys, xs, index, _ = pixels
-    starts, bkeys, bands = blocks
-    order, src, wt, radius, scans = plan
+    ys, xs, index, _ = borrow(pixels)
+    starts, bkeys, bands = borrow(blocks)
+    order, src, wt, radius, scans = borrow(plan)
+    ref, targets, offb, costb = borrow((ref, targets, off, cost))
     patch = search.patch
     seed = search.seed
     h = targets.shape[1] - patch + 1
     w = targets.shape[2] - (patch - 1) - _EXTRA
-    # bands of rows are independent (propagation stays inside a band), so they run in parallel
-    # with a result that does not depend on the number of threads; inside a band the targets
-    # run in ``order`` because each is initialised from those before it
-    for b in prange(bands.shape[0] - 1):
+    # bands of rows are independent (propagation stays inside a band), so the result does not
+    # depend on the order they run in, or on a crop; inside a band the targets run in
+    # ``order`` because each is initialised from those before it
+    for b in range(bands.shape[0] - 1):
         q0 = bands[b]
         q1 = bands[b + 1]
         j0 = starts[q0]
         j1 = starts[q1]
-        cs = np.empty(BLOCK + patch, np.float32)
-        cand = np.empty((_MAX_CANDIDATES, 2), np.int64)
+        cs_own = np.empty(BLOCK + patch, np.float32)
+        cand_own = np.empty((_MAX_CANDIDATES, 2), np.int64)
         # the current block's bests by lane (column - first column of the block)
-        bc = np.empty(BLOCK, np.float32)
-        boy = np.zeros(BLOCK, np.int32)
-        box = np.zeros(BLOCK, np.int32)
-        lanes = Lanes(bc, boy, box)
+        lanes_own = Lanes(np.empty(BLOCK, np.float32), np.zeros(BLOCK, np.int32),
+                          np.zeros(BLOCK, np.int32))
+        cs, cand, lanes = borrow((cs_own, cand_own, lanes_own))
+        bc, boy, box = lanes
         for o in range(order.shape[0]):
             i = order[o]
             tgt = targets[i]
-            offi = off[i]
-            costi = cost[i]
+            offi = offb[i]
+            costi = costb[i]
             for j in range(j0, j1):  # the outputs come uninitialised (_matching)
                 costi[j] = np.inf
                 offi[j, 0] = 0
@@ -390,7 +393,7 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                     nc = 0
                     if it == 0:
                         if predicted:
-                            nc = _predicted(off, src[i], wt[i], p0, p1, cand)
+                            nc = _predicted(offb, src[i], wt[i], p0, p1, cand)
                         else:
                             nc = _add_cand(cand, nc, 0, 0)
                     # propagation: the offsets of the already-visited neighbours in the band
@@ -430,22 +433,24 @@ def _nnf_temporal_kernel(ref, targets, pixels, blocks, plan, search, off, cost):
                         costi[k] = bc[o]
                         offi[k, 0] = boy[o]
                         offi[k, 1] = box[o]
+        keep((cs_own, cand_own, lanes_own))
     return off, cost
 
 
 @njit(hot=True)
 def _fuse_kernel(ref_raw, raw, ys, xs, js, off, cost, scale, out):  # pragma: no cover - numba
-    # the pixels ``js`` (ascending) in chunks in parallel; inside a chunk target by target (one
-    # frame at a time in cache), each pixel still summing the reference and then the targets
-    # in order
+    # the pixels ``js`` (ascending) in chunks; inside a chunk target by target (one frame at a
+    # time in cache), each pixel still summing the reference and then the targets in order
     n_t, h, w = raw.shape
+    ref_raw, raw, ys, xs, js, off, cost, outb = borrow((ref_raw, raw, ys, xs, js, off, cost, out))
     m = js.shape[0]
     chunk = _FUSE_CHUNK
-    for ch in prange((m + chunk - 1) // chunk):
+    for ch in range((m + chunk - 1) // chunk):
         q0 = ch * chunk
         q1 = min(m, q0 + chunk)
-        acc = np.empty(q1 - q0)
-        wsum = np.ones(q1 - q0)
+        acc_own = np.empty(q1 - q0)
+        wsum_own = np.ones(q1 - q0)
+        acc, wsum = borrow((acc_own, wsum_own))
         for q in range(q0, q1):
             acc[q - q0] = ref_raw[ys[js[q]], xs[js[q]]]
         for i in range(n_t):
@@ -461,5 +466,6 @@ def _fuse_kernel(ref_raw, raw, ys, xs, js, off, cost, scale, out):  # pragma: no
                 acc[q - q0] += wt * raw[i, ty, tx]
                 wsum[q - q0] += wt
         for q in range(q0, q1):
-            out[js[q]] = acc[q - q0] / wsum[q - q0]
+            outb[js[q]] = acc[q - q0] / wsum[q - q0]
+        keep((acc_own, wsum_own))
     return out

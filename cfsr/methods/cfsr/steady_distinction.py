@@ -35,8 +35,8 @@ from enum import StrEnum
 from typing import NamedTuple
 
 import numpy as np
-from numba import prange
 
+from cfsr._borrow import borrow, keep
 from cfsr._isi import needs_after, needs_before, tfi_interval
 from cfsr._jit import njit
 from cfsr._words import (
@@ -158,8 +158,9 @@ def _steady_kernel(src, kept, at, spans, spread, isi, rates, active):  # pragma:
     leaves them; otherwise gathers them. Where ``active`` (bool ``(H, W)``; empty: every
     pixel) is False the spread is 0 (a static tile), except on the pixels
     :func:`noise_level` samples (:func:`noise_step`), so the noise level stays the same."""
-    packed, geo, lo, hi = src
-    store, bases = kept
+    packed, geo, lo, hi = borrow(src)
+    store, bases = borrow(kept)
+    spans, spread, isi, rates, active = borrow((spans, spread, isi, rates, active))
     n, c, radius, m = at
     h, w = spread.shape
     every = active.shape[0] == 0
@@ -167,9 +168,10 @@ def _steady_kernel(src, kept, at, spans, spread, isi, rates, active):  # pragma:
     a = max(0, c - m)
     b = min(n, c + m + 1)
     k_spans = spans.shape[0]
-    for y in prange(h):
-        loc = np.empty(2 * radius + 2, np.int64)
-        words, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
+    for y in range(h):
+        loc_own = np.empty(2 * radius + 2, np.int64)
+        words_own, base, step = row_or_stored(packed, geo, lo, hi, y, w, store, bases)
+        loc, words = borrow((loc_own, words_own))
         sampled = y % grid == 0
         for x in range(w):
             r = base + step * x
@@ -189,6 +191,7 @@ def _steady_kernel(src, kept, at, spans, spread, isi, rates, active):  # pragma:
                     rates[j, y, x] = np.float32(span_rate(cnt, first, last, sb - sa))
                 else:
                     rates[j, y, x] = np.float32(1.0 / iv)
+        keep((loc_own, words_own))
 
 
 @njit
@@ -322,6 +325,7 @@ def steady_mask(
     ``tol`` and ``noise`` are relative interval spreads (see :func:`interval_stats`,
     :func:`noise_level`); ``close_size`` pixels (<= 1: the per-pixel test alone).
     """
+    # deferred: a cycle (fine_mask -> settings -> coarse -> this module)
     from cfsr.methods.cfsr.fine_mask import regularise
 
     raw = spread > np.float32(max(tol, noise_factor * noise))
