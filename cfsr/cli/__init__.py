@@ -6,8 +6,10 @@ the ``cfsr.commands`` entry-point group, the way pytest and Flask find plugin co
 package never imports anything above it: an entry point names a module that defines ``HELP``
 (one line), ``add_arguments(parser)`` and ``run(args) -> int``.
 
-Sub-command modules import their heavy dependencies inside ``run``, so ``cfsr info`` never loads
-FastAPI and ``cfsr serve`` never pays for the simulator until it needs it.
+Dispatch is lazy: the parser lists every command from the tables here, by name and one-line
+help, and imports only the module of the command that runs (to add its arguments and run it),
+so a command module imports what it needs at its top, and ``cfsr info`` never loads FastAPI
+or the benchmark. ``cfsr --help`` imports the plugin commands for their ``HELP`` only.
 """
 
 from __future__ import annotations
@@ -15,10 +17,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Callable
-from importlib.metadata import entry_points
-from types import ModuleType
+from collections.abc import Collection
+from importlib.metadata import EntryPoint, PackageNotFoundError, entry_points
+from importlib.metadata import version as dist_version
 
+import cfsr
+from cfsr._heap import keep_freed_memory
 from cfsr.cli._extras import EXTRAS, MissingExtra, install_hint, missing_extra_message
 
 __all__ = ["COMMANDS", "PLUGIN_GROUP", "build_parser", "main"]
@@ -55,26 +59,25 @@ class _Parser(argparse.ArgumentParser):
 def version() -> str:
     """The installed distribution's version (the package's own when run from a checkout)."""
     try:
-        from importlib.metadata import PackageNotFoundError
-        from importlib.metadata import version as dist_version
-
         return dist_version("cfsr")
     except PackageNotFoundError:
-        from cfsr import __version__
-
-        return __version__
+        return cfsr.__version__
 
 
-def _plugin_modules() -> dict[str, Callable[[], ModuleType]]:
-    """name -> loader of each command registered in :data:`PLUGIN_GROUP` (not yet imported)."""
-    out: dict[str, Callable[[], ModuleType]] = {}
+def _plugins() -> dict[str, EntryPoint]:
+    """name -> entry point of each command registered in :data:`PLUGIN_GROUP` (not imported)."""
+    out: dict[str, EntryPoint] = {}
     for ep in entry_points(group=PLUGIN_GROUP):
         if ep.name not in COMMANDS:  # a plugin never shadows an offline command
-            out.setdefault(ep.name, ep.load)
+            out.setdefault(ep.name, ep)
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(full: Collection[str] | None = None) -> argparse.ArgumentParser:
+    """The ``cfsr`` parser. ``full``: the commands whose modules are imported to add their
+    arguments (None: every command, as the documentation checks read every option); the
+    others are listed by name and help only. With ``full`` empty (``cfsr --help``) the plugin
+    commands are imported for their help line; with a command named, only that one."""
     parser = _Parser(
         prog="cfsr",
         description="Spike-camera reconstruction: library, offline tools and live service. "
@@ -88,12 +91,16 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (modname, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
         p.set_defaults(_module=modname)
-        importlib.import_module(modname).add_arguments(p)
-    plugins = _plugin_modules()
+        if full is None or name in full:
+            importlib.import_module(modname).add_arguments(p)
+    plugins = _plugins()
     for name in sorted(set(plugins) | set(EXTRA_COMMANDS)):
         extra, help_ = EXTRA_COMMANDS.get(name, (None, name))
+        if name in plugins and full and name not in full:  # listed, not run: not imported
+            sub.add_parser(name, help=help_).set_defaults(_module=plugins[name].module)
+            continue
         try:
-            mod = plugins[name]() if name in plugins else None
+            mod = plugins[name].load() if name in plugins else None
             problem = None if mod is not None else "not installed"
         except ImportError as exc:
             mod, problem = None, str(exc)
@@ -112,7 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # the command is the first word (the top level has no option that takes a value)
+    command = argv[0] if argv and not argv[0].startswith("-") else None
+    parser = build_parser(full=[command] if command else [])
     args = parser.parse_args(argv)
     prog = f"cfsr {args.command}"
     if getattr(args, "_unavailable", None):
@@ -120,8 +130,6 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     mod = importlib.import_module(args._module)
-    from cfsr._heap import keep_freed_memory
-
     keep_freed_memory()  # long runs reuse freed frame arrays instead of faulting pages in
     try:
         return int(mod.run(args) or 0)
