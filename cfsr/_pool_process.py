@@ -15,6 +15,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cfsr._bits import unpack_layout
+from cfsr._heap import keep_freed_memory
+from cfsr._jit import activity, waiting_for
 from cfsr.config import MethodConfig
 from cfsr.layout import Layout
 from cfsr.methods.registry import Output
@@ -82,8 +85,6 @@ class _RegionView:
         return self._frames[a - self._start : b - self._start]
 
     def frames(self, a: int, b: int) -> np.ndarray:
-        from cfsr._bits import unpack_layout
-
         return unpack_layout(self.packed(a, b), self.layout)
 
 
@@ -105,9 +106,6 @@ def _pool_main(
     nice: int = 0,
 ) -> None:
     """Entry point of a pool process: map the region, answer tasks until told to stop."""
-    from cfsr._heap import keep_freed_memory
-    from cfsr._jit import activity, waiting_for
-
     # Ctrl+C, a closed terminal, Ctrl+\ and a kill of the process group reach us too: the
     # pool's owner stops us (and releases what we share) rather than the signal half-way
     ignore_stop_signals()

@@ -25,6 +25,7 @@ from numba.core import cgutils
 from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 from numba.extending import intrinsic
 
+from cfsr._bits import pack_frames
 from cfsr._isi import needs_after, needs_before, tfi_interval
 from cfsr._jit import njit
 from cfsr.layout import Layout
@@ -125,8 +126,6 @@ class PackedWindow:
     @classmethod
     def from_frames(cls, window: np.ndarray) -> PackedWindow:
         """Pack upright ``(n, H, W)`` frames (any ``H * W``: the last byte is padded)."""
-        from cfsr._bits import pack_frames
-
         n, h, w = window.shape
         return cls(pack_frames(window), h, w, np.array([w, h, 1, 0, 1], np.int64))
 

@@ -17,6 +17,12 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.datfile import read_spikes
+from cfsr.defects import with_defects
+from cfsr.display import to_display
+from cfsr.offline import stream_reconstruct
+from cfsr.pool import FramePool
+
 __all__ = [
     "ChunkTask",
     "dask_client",
@@ -66,8 +72,6 @@ def write_output(out_dir: Path, t: int, out: Any, gain: float | None, masks: boo
     """``tSTEP.npy`` (float32 rates) + ``tSTEP.png`` (8-bit), and masks if asked."""
     from PIL import Image
 
-    from cfsr.display import to_display
-
     np.save(out_dir / f"t{t}.npy", out.rate.astype(np.float32))
     Image.fromarray(to_display(out.rate, gain)).save(out_dir / f"t{t}.png")
     if masks:
@@ -81,10 +85,6 @@ def run_chunk(
 ) -> dict[str, Any]:
     """Run one chunk (in this process or on a cluster worker), on ``pool`` (a running
     :class:`~cfsr.pool.FramePool`) if given; returns counts and timing."""
-    from cfsr.datfile import read_spikes
-    from cfsr.defects import with_defects
-    from cfsr.offline import stream_reconstruct
-
     t0 = time.perf_counter()
     rec = with_defects(read_spikes(task.path, **dict(task.read_kwargs or {})), task.defects)
     out_dir = Path(task.out_dir)
@@ -143,7 +143,6 @@ def run_batch(
         fixed = {(t.workers, t.threads) for t in tasks if t.workers not in (None, 1)}
         if not fixed:
             return [run_chunk(task, tick) for task in tasks]
-        from cfsr.pool import FramePool
 
         (workers, threads), *_ = sorted(fixed)
         with FramePool(workers, threads) as pool:  # one pool for every chunk

@@ -13,7 +13,17 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.config import MethodConfig
+from cfsr.display import to_display
 from cfsr.layout import STEP_RATE_HZ
+from cfsr.methods import methods
+from cfsr.methods.registry import get_method, resolve_params
+from cfsr.metrics import psnr
+from cfsr.pixelstate import PixelState
+from cfsr.pool import FramePool
+from cfsr.simulate import simulate
+from cfsr.spikes import SpikeRecording
+from cfsr.streaming import StreamingReconstructor
 
 __all__ = [
     "DISPLAY_FPS",
@@ -57,8 +67,6 @@ QUICK_GRID = ("tfi", "tfp:window=32,mode=centred", "tfp:window=160", "csr", "cfs
 
 def grid_specs(grid: Sequence[str]) -> tuple[list[str], list[str]]:
     """Split a grid into (runnable specs, skipped specs whose method is not registered)."""
-    from cfsr.methods import methods
-
     known = set(methods())
     run, skipped = [], []
     for spec in grid:
@@ -110,8 +118,6 @@ def method_fps(
     ``packed`` holds enough frames for the method's window; the newest computable step is
     reconstructed repeatedly, as the live worker does.
     """
-    from cfsr.streaming import StreamingReconstructor
-
     sr = StreamingReconstructor(method, layout, params=params, preset=preset, slack=len(packed))
     sr.push(packed, 0)
     t = sr.latest_step()
@@ -144,8 +150,6 @@ def dense_output(
     state, :attr:`cfsr.methods.registry.Method.recurrent`): TFSTP's results are the same,
     CFSR's carried outputs within 0.1 dB of isolated ones (:func:`carried_rows` measures it).
     """
-    from cfsr.streaming import StreamingReconstructor
-
     sr = StreamingReconstructor(method, layout, slack=len(packed))
     sr.push(packed, 0)
     last = sr.latest_step()
@@ -184,9 +188,6 @@ def pool_fps(
     worker's and ``cfsr reconstruct``'s pool): ``frames`` outputs spread over ``packed``, each
     from nothing, timed from the first submission to the last result after one warm-up frame
     per process. Also the resident memory each process holds after the run (MB, Linux)."""
-    from cfsr.config import MethodConfig
-    from cfsr.pool import FramePool
-
     cfg = MethodConfig(method, params)
     before, after = cfg.window
     n = len(packed)
@@ -272,9 +273,6 @@ TIER_BARS = (0.5, 1.0)
 
 def _scores(outs, gts, masks, gain: float) -> tuple[float, float]:
     """Mean PSNR (dB) over frames: whole frame and true motion region (NaN without motion)."""
-    from cfsr.display import to_display
-    from cfsr.metrics import psnr
-
     imgs = [to_display(o.rate, gain) for o in outs]
     whole = [psnr(g, i) for g, i in zip(gts, imgs, strict=True)]
     motion = [psnr(g, i, mask=m) for g, i, m in zip(gts, imgs, masks, strict=True) if m.any()]
@@ -306,11 +304,6 @@ def tier_rows(
     each simulated scene, the loss against ``full`` and whether :data:`TIER_BARS` hold;
     on ``cost_scene`` also CPU ms per isolated frame (median of ``rounds`` passes over
     ``times``) and the cost relative to ``full``."""
-    from cfsr.display import to_display
-    from cfsr.simulate import simulate
-    from cfsr.spikes import SpikeRecording
-    from cfsr.streaming import StreamingReconstructor
-
     variants = [("csr", "csr", {}), ("full", "cfsr", {})] + [
         (label, "cfsr", params) for label, params in candidates
     ]
@@ -373,12 +366,6 @@ def carried_rows(
     frames isolated (memo emptied before each): PSNR of both (whole, motion region), the
     difference, CPU ms per frame of both (median of ``rounds``) and the ratio isolated /
     carried."""
-    from cfsr.display import to_display
-    from cfsr.methods.registry import get_method, resolve_params
-    from cfsr.simulate import simulate
-    from cfsr.spikes import SpikeRecording
-    from cfsr.streaming import StreamingReconstructor
-
     m = get_method("cfsr")
     p = resolve_params(m, params)
     before, after = m.window(p)
@@ -482,8 +469,6 @@ def streaming_state_rtf(
     packed: np.ndarray, layout, *, block: int = 4096, min_time: float = 1.0
 ) -> float:
     """Steps per second of :class:`~cfsr.pixelstate.PixelState` over packed blocks / 40,000."""
-    from cfsr.pixelstate import PixelState
-
     ps = PixelState(layout)
     n = len(packed)
     blocks = [packed[a : a + block] for a in range(0, n - block + 1, block)] or [packed]

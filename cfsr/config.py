@@ -13,6 +13,9 @@ from collections.abc import Mapping
 from dataclasses import InitVar, dataclass, field
 from typing import Any
 
+from cfsr.methods import registry
+from cfsr.methods.registry import get_method
+
 __all__ = ["MethodConfig"]
 
 
@@ -50,8 +53,6 @@ class MethodConfig:
     preset: InitVar[str | None] = None
 
     def __post_init__(self, preset: str | None) -> None:
-        from cfsr.methods import registry
-
         m = registry.get_method(self.method)
         params = registry.resolve_params(m, self.params, preset)
         object.__setattr__(self, "method", m.name)
@@ -68,8 +69,6 @@ class MethodConfig:
     @property
     def spec(self):
         """The registered :class:`cfsr.methods.registry.Method`."""
-        from cfsr.methods.registry import get_method
-
         return get_method(self.method)
 
     @property

@@ -26,6 +26,15 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.api import check_times, reconstruct_outputs
+from cfsr.datfile import read_dat
+from cfsr.display import to_display
+from cfsr.methods.registry import get_method, resolve_params
+from cfsr.methods.registry import methods as registered
+from cfsr.metrics import mask_iou, psnr, ssim
+from cfsr.simulate import SCENES, simulate
+from cfsr.spikes import SpikeRecording
+
 __all__ = [
     "MethodSpec",
     "parse_method_spec",
@@ -97,8 +106,6 @@ def parse_method_spec(
     >>> s.name, s.params, s.label
     ('tfp', {'window': 32, 'mode': 'centred'}, 'tfp:window=32,mode=centred')
     """
-    from cfsr.methods.registry import get_method, resolve_params
-
     if isinstance(spec, MethodSpec):
         if not params:
             return spec
@@ -159,8 +166,6 @@ def _specs(
     methods: Sequence[str | MethodSpec] | str | None,
     params_by_method: Mapping[str, Mapping[str, Any]] | None,
 ) -> list[MethodSpec]:
-    from cfsr.methods.registry import methods as registered
-
     if methods is None:
         names: list[str | MethodSpec] = list(registered())
     elif isinstance(methods, str):
@@ -239,9 +244,6 @@ def _score_frames(
     gain: float,
 ) -> dict[str, Any]:
     """PSNR/SSIM (all, motion) and mask IoUs averaged over frames."""
-    from cfsr.display import to_display
-    from cfsr.metrics import mask_iou, psnr, ssim
-
     ps, ss, pm, sm = [], [], [], []
     ious: dict[str, list[float]] = {}
     for out, gt, mask in zip(outs, gts, masks, strict=True):
@@ -271,8 +273,6 @@ def _score_frames(
 def _scene_names(scenes: Sequence[str] | str | None) -> list[str]:
     """Simulator scene names from a list, a comma-separated string or None (all); ValueError
     naming the unknown ones."""
-    from cfsr.simulate import SCENES
-
     if scenes is None:
         names = list(SCENES)
     elif isinstance(scenes, str):
@@ -289,8 +289,6 @@ def _scene_names(scenes: Sequence[str] | str | None) -> list[str]:
 
 def _sim_times(times: Sequence[int] | None, steps: int) -> list[int]:
     """Output steps inside a simulated run of ``steps`` (default :func:`default_times`)."""
-    from cfsr.api import check_times
-
     return check_times(default_times(steps) if times is None else times, steps,
                        "the simulated run")
 
@@ -299,10 +297,6 @@ def _simulated(scene: str, steps: int, ts: Sequence[int], seed: int, height: int
                noise: Any) -> tuple[Any, list[np.ndarray], list[np.ndarray], float]:
     """``scene`` simulated: its packed recording, the 8-bit ground truth and the true motion
     masks at ``ts``, and its rate scale (the display gain of both)."""
-    from cfsr.display import to_display
-    from cfsr.simulate import simulate
-    from cfsr.spikes import SpikeRecording
-
     sim = simulate(scene.lower(), steps, seed=seed, height=height, width=width, noise=noise)
     gain = sim.rate_scale
     gts = [to_display(sim.ideal_rate(t), gain=gain) for t in ts]
@@ -315,8 +309,6 @@ def _timed_outputs(rec: Any, spec: MethodSpec, ts: Sequence[int], *, warm: bool
                    ) -> tuple[list[Any], float]:
     """``spec``'s outputs at ``ts`` and the seconds they took in this process (``warm``: one
     untimed call first, so a first use's compilation is not counted)."""
-    from cfsr.api import reconstruct_outputs
-
     if warm:
         reconstruct_outputs(rec, spec.name, ts[:1], preset=spec.preset, params=spec.params)
     t0 = time.perf_counter()
@@ -386,8 +378,6 @@ def evaluate(
     mismatch) a method is scored on how well it recovers the scene, not the noise. Without
     fixed-pattern noise the two are equal.
     """
-    from cfsr.methods.registry import get_method, resolve_params
-
     specs = _specs(methods, params_by_method)
     scene_names = _scene_names(scenes)
     steps = int(steps)
@@ -480,9 +470,6 @@ def evaluate_reds(
         (Spike-Zoo, 41-frame windows): TFI 25.1 dB, TFP 28.2 dB.
     """
     import cv2
-
-    from cfsr.datfile import read_dat
-    from cfsr.methods.registry import get_method, resolve_params
 
     specs = _specs(methods, params_by_method)
     pairs = find_reds_pairs(folder)

@@ -12,6 +12,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from cfsr._jit import activity
+
 __all__ = [
     "COMPILE_BEAT_S",
     "STOP_SIGNALS",
@@ -33,8 +35,6 @@ def start_compile_beat(send: Any, every: float = COMPILE_BEAT_S) -> threading.Th
     cfsr's kernels here or waits for another process's compile of one, and once when that
     ends. The compile holds the process's main thread for as long as it takes (minutes on a
     busy machine); this beat is how its owner tells it from a hung one."""
-    from cfsr._jit import activity
-
     def beat() -> None:
         was_busy = False
         while True:

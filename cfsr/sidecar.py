@@ -243,6 +243,7 @@ def validate_sidecar(meta: Mapping[str, Any], where: str | os.PathLike) -> dict[
             raise bad("gain", f"null or a number in [{MIN_GAIN:g}, {MAX_GAIN:g}] spikes/step")
         out["gain"] = v
     if meta.get("defects") is not None:
+        # deferred: a cycle (cfsr.defects.defect_map reads and writes sidecars through this module)
         from cfsr.defects.defect_map import DefectMap
 
         try:  # checked here once; cfsr.defects.map_of builds it again from the checked value

@@ -31,6 +31,14 @@ from typing import Any
 
 import numpy as np
 
+import cfsr
+from cfsr._bits import _unpack_kernel, pack_frames
+from cfsr._jit import kernel_name, on_compile
+from cfsr.layout import Layout
+from cfsr.methods import get_method, resolve_params
+from cfsr.methods import methods as registered
+from cfsr.streaming import StreamingReconstructor
+
 __all__ = [
     "warm_up",
     "is_warm",
@@ -86,8 +94,6 @@ def _fingerprint() -> str:
     content of every cfsr module (a fresh clone or a reinstall of the same code keeps it)."""
     import numba
 
-    import cfsr
-
     root = Path(cfsr.__file__).parent
     h = hashlib.sha256(f"{cfsr.__version__} {numba.__version__}".encode())
     for p in sorted(root.rglob("*.py")):
@@ -114,8 +120,6 @@ def compile_profile(methods: Sequence[str] | None = None) -> dict[str, Any]:
     Run it on an empty cache (``NUMBA_CACHE_DIR`` set to a new folder), or it measures
     cache loads. This is what ``cfsr bench --compile`` runs in each of its processes."""
     from numba.core import event
-
-    from cfsr._jit import kernel_name
 
     stack: list[list[Any]] = []
     own: dict[str, float] = {}
@@ -196,11 +200,8 @@ def cache_dir() -> Path:
     virtual environment; else numba's per-user cache folder, as for a system-wide install)."""
     import numba
 
-    import cfsr
-
     if numba.config.CACHE_DIR:
         return Path(numba.config.CACHE_DIR)
-    from cfsr._bits import _unpack_kernel
 
     try:  # numba exposes no public accessor for a dispatcher's cache folder
         return Path(_unpack_kernel._cache._cache_path)
@@ -252,12 +253,6 @@ def warm_up(
     -----
     When every registered method was warmed, the marker of :func:`marker_path` is written.
     """
-    from cfsr._bits import pack_frames
-    from cfsr.layout import Layout
-    from cfsr.methods import get_method, resolve_params
-    from cfsr.methods import methods as registered
-    from cfsr.streaming import StreamingReconstructor
-
     known = list(registered())
     names = [m for m in WARM_ORDER if m in known] + [m for m in known if m not in WARM_ORDER]
     if methods is not None:
@@ -265,7 +260,6 @@ def warm_up(
     h, w = _SHAPE
     layout = Layout(w, h)
     out: dict[str, float] = {}
-    from cfsr._jit import on_compile
 
     for name in names:
         t0 = time.perf_counter()

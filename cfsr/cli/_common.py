@@ -7,6 +7,9 @@ import os
 import sys
 from typing import Any
 
+from cfsr.datfile import read_spikes
+from cfsr.warmup import KernelProgress, cache_dir, measured_compile, warm_up
+
 
 class TimeSpec:
     """Output steps from ``"300,500"`` or ranges ``"START:STOP[:STRIDE]"`` (STOP exclusive;
@@ -164,8 +167,6 @@ def add_input_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def open_input(args: argparse.Namespace):
-    from cfsr.datfile import read_spikes
-
     key = getattr(args, "key", None)
     if str(args.input).lower().endswith(".npz"):
         return read_spikes(args.input, key=key)
@@ -184,8 +185,6 @@ def open_input(args: argparse.Namespace):
 
 def jit_cache_location() -> str:
     """Where numba keeps the compiled kernels (:func:`cfsr.warmup.cache_dir`)."""
-    from cfsr.warmup import cache_dir
-
     return str(cache_dir())
 
 
@@ -196,8 +195,6 @@ def compile_first(method: str, *, quiet: bool = False) -> None:
     so, instead of a frame counter standing still. A cached method loads in about a second
     and shows nothing. Processes started afterwards (the pool) load what this one compiled."""
     from tqdm import tqdm
-
-    from cfsr.warmup import KernelProgress, measured_compile, warm_up
 
     table = measured_compile().get("methods", {}).get(method, {})
     bar = tqdm(total=len(table.get("kernels", [])) or None, unit="kernel",

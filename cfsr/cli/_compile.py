@@ -20,6 +20,9 @@ import sys
 import tempfile
 from typing import Any
 
+from cfsr.methods import methods as registered
+from cfsr.warmup import WARM_ORDER
+
 _PROFILE = "import json; from cfsr.warmup import compile_profile as p; print(json.dumps(p({})))"
 
 _FRAMES = """
@@ -99,9 +102,6 @@ def _spread(values: list[float]) -> dict[str, float]:
 def compile_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
     """The compile figures: ``runs`` repetitions (1 with ``--quick``, else 3) of every
     method together and each alone, on empty caches, and the one-thread frame cost."""
-    from cfsr.methods import methods as registered
-    from cfsr.warmup import WARM_ORDER
-
     known = list(registered())
     names = [m for m in WARM_ORDER if m in known] + [m for m in known if m not in WARM_ORDER]
     runs = 1 if args.quick else 3

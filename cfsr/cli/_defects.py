@@ -8,19 +8,19 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from cfsr.bench import format_rows
+from cfsr.defects.evaluate import clean_sensor_flags, evaluate_defects
+from cfsr.evaluation import split_method_specs
+
 #: Every method of the accuracy table at its defaults.
 DEFECT_METHODS = ("tfi", "tfp", "tfa", "tfstp", "snm", "csr", "cfsr")
 QUICK_METHODS = ("tfp", "cfsr")
 
 
 def defects_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
-    from cfsr.defects.evaluate import evaluate_defects
-    from cfsr.evaluation import split_method_specs
-
     methods = (split_method_specs(args.methods) if args.methods
                else list(QUICK_METHODS if args.quick else DEFECT_METHODS))
     scenes = [s.strip() for s in args.scenes.split(",")] if args.scenes else ["disk", "stars"]
-    from cfsr.defects.evaluate import clean_sensor_flags
 
     bar.set_description("defects")
     res = evaluate_defects(methods, scenes, steps=args.steps or 1200)
@@ -30,8 +30,6 @@ def defects_bench(args: argparse.Namespace, bar: Any) -> dict[str, Any]:
 
 
 def print_defects(res: dict[str, Any]) -> None:
-    from cfsr.bench import format_rows
-
     print(format_rows(res["rows"], [
         ("method", "method", ""), ("scene", "scene", ""), ("sensor", "sensor", ""),
         ("psnr_all", "PSNR all", ".2f"), ("psnr_motion", "PSNR motion", ".2f"),

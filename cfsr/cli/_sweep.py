@@ -16,6 +16,15 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from cfsr._bits import pack_frames
+from cfsr.bench import TIER_BARS, carried_rows, format_rows, tier_rows, time_call
+from cfsr.display import to_display
+from cfsr.layout import Layout
+from cfsr.methods import get_method
+from cfsr.metrics import psnr
+from cfsr.simulate import SCENES, make_scene, simulate
+from cfsr.streaming import StreamingReconstructor
+
 SCENARIOS = (
     ("static", "static", {}),
     ("~10% moving", "disk", {"radius": 56}),
@@ -26,15 +35,6 @@ SCENARIOS = (
 
 def sweep(args: argparse.Namespace, bar) -> dict[str, Any]:
     import numpy as np
-
-    from cfsr._bits import pack_frames
-    from cfsr.bench import time_call
-    from cfsr.display import to_display
-    from cfsr.layout import Layout
-    from cfsr.methods import get_method
-    from cfsr.metrics import psnr
-    from cfsr.simulate import make_scene, simulate
-    from cfsr.streaming import StreamingReconstructor
 
     if "adaptive" not in get_method("cfsr").params:
         raise ValueError("this build's cfsr has no 'adaptive' parameter to switch off skipping")
@@ -119,8 +119,6 @@ def _variant(r: dict[str, Any]) -> str:
 
 
 def print_sweep(res: dict[str, Any]) -> None:
-    from cfsr.bench import format_rows
-
     rows = [{**r, "variant": _variant(r)} for r in res["rows"]]
     print(
         format_rows(
@@ -144,9 +142,6 @@ def print_sweep(res: dict[str, Any]) -> None:
 def tiers(args: argparse.Namespace, bar) -> dict[str, Any]:
     """``--tiers``: :func:`cfsr.bench.tier_rows`; ``--dense``: :func:`cfsr.bench.carried_rows`
     (both on ``--scenes``, default every simulated scene; ``--quick``: disk and car)."""
-    from cfsr.bench import carried_rows, tier_rows
-    from cfsr.simulate import SCENES
-
     scenes = (
         [s.strip() for s in args.scenes.split(",") if s.strip()]
         if args.scenes
@@ -166,8 +161,6 @@ def tiers(args: argparse.Namespace, bar) -> dict[str, Any]:
 
 
 def print_tiers(res: dict[str, Any]) -> None:
-    from cfsr.bench import TIER_BARS, format_rows
-
     if res.get("tiers"):
         print(
             f"quality tiers: PSNR in dB, loss against full (bars {TIER_BARS[0]} whole, "

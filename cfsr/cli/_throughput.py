@@ -6,14 +6,24 @@ from __future__ import annotations
 import argparse
 from typing import Any, NamedTuple
 
+from cfsr._bits import pack_frames
+from cfsr.bench import (
+    core_forecast,
+    dense_output,
+    method_fps,
+    method_scaling,
+    pool_fps,
+    streaming_state_rtf,
+)
+from cfsr.cli._extras import install_hint
 from cfsr.cli.bench import GOALS, _machine
+from cfsr.layout import Layout
+from cfsr.methods import methods
+from cfsr.pool import usable_cores
+from cfsr.simulate import simulate
 
 
 def _demo_packed(steps: int, height: int = 250, width: int = 400):
-    from cfsr._bits import pack_frames
-    from cfsr.layout import Layout
-    from cfsr.simulate import simulate
-
     sim = simulate("disk", steps, seed=0, height=height, width=width)
     return pack_frames(sim.spikes), Layout(width, height)
 
@@ -23,8 +33,6 @@ def _acquisition(args: argparse.Namespace) -> dict[str, Any]:
     possible), which registers it in the ``cfsr.benchmarks`` entry-point group: this package
     never imports the layers above it."""
     from importlib.metadata import entry_points
-
-    from cfsr.cli._extras import install_hint
 
     eps = [ep for ep in entry_points(group="cfsr.benchmarks") if ep.name == "acquisition"]
     if not eps:
@@ -40,8 +48,6 @@ def _live(args: argparse.Namespace, bar) -> dict[str, Any]:
     """The live service's frame rate per method, CFSR tier and pool split, measured by the
     live layer (``cfsr.benchmarks`` entry point ``live``: this package never imports it)."""
     from importlib.metadata import entry_points
-
-    from cfsr.cli._extras import install_hint
 
     eps = [ep for ep in entry_points(group="cfsr.benchmarks") if ep.name == "live"]
     if not eps:
@@ -101,17 +107,6 @@ def _sizes(args: argparse.Namespace) -> Sizes:
 
 
 def throughput(args: argparse.Namespace, bar) -> dict[str, Any]:
-    from cfsr.bench import (
-        core_forecast,
-        dense_output,
-        method_fps,
-        method_scaling,
-        pool_fps,
-        streaming_state_rtf,
-    )
-    from cfsr.methods import methods
-    from cfsr.pool import usable_cores
-
     sz = _sizes(args)
     bar.set_description("simulating")
     packed, layout = _demo_packed(sz.steps)

@@ -17,6 +17,23 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cfsr.api import reconstruct_outputs
+from cfsr.batch import dask_client
+from cfsr.bench import FULL_GRID, QUICK_GRID, format_rows, grid_specs
+from cfsr.cli._extras import install_hint, require_extra
+from cfsr.datfile import read_npz
+from cfsr.display import to_display
+from cfsr.evaluation import (
+    evaluate,
+    evaluate_reds,
+    find_reds_pairs,
+    parse_method_spec,
+    split_method_specs,
+)
+from cfsr.metrics import cpbd, std_metric
+from cfsr.plots import have_matplotlib, plot_pareto
+from cfsr.simulate import SCENES
+
 # the checkout's root, where ../shared/data may sit beside it (not found in a wheel install)
 REPO = Path(__file__).resolve().parents[2]
 
@@ -154,8 +171,6 @@ def _write_json(path: Path, obj: Any) -> None:
 
 def _scene_rows(job: dict[str, Any]) -> list[dict[str, Any]]:
     """One scene's rows (runs in-process or on a Dask worker)."""
-    from cfsr.evaluation import evaluate
-
     return evaluate(
         job["specs"],
         [job["scene"]],
@@ -169,16 +184,10 @@ def _scene_rows(job: dict[str, Any]) -> list[dict[str, Any]]:
 
 def _warm_up(specs: list[str]) -> None:
     """Compile every kernel once on a tiny scene so timings exclude JIT compilation."""
-    from cfsr.evaluation import evaluate
-
     evaluate(specs, ["disk"], steps=700, times=[600], height=48, width=64)
 
 
 def _accuracy(args: argparse.Namespace, bar) -> dict[str, Any]:
-    from cfsr.bench import FULL_GRID, QUICK_GRID, grid_specs
-    from cfsr.evaluation import evaluate_reds, find_reds_pairs, split_method_specs
-    from cfsr.simulate import SCENES
-
     grid = (
         split_method_specs(args.methods)
         if args.methods
@@ -205,8 +214,6 @@ def _accuracy(args: argparse.Namespace, bar) -> dict[str, Any]:
     bar.set_description("scenes")
     if args.cluster:
         from dask.distributed import as_completed
-
-        from cfsr.batch import dask_client
 
         client, local = dask_client(args.cluster)
         try:
@@ -245,12 +252,6 @@ def _accuracy(args: argparse.Namespace, bar) -> dict[str, Any]:
 def _uhsr_rows(path: Path, specs: list[str]) -> list[dict[str, Any]]:
     """STD and CPBD (no reference) of every method on the real uhsr capture, as in Table 1."""
     import numpy as np
-
-    from cfsr.api import reconstruct_outputs
-    from cfsr.datfile import read_npz
-    from cfsr.display import to_display
-    from cfsr.evaluation import parse_method_spec
-    from cfsr.metrics import cpbd, std_metric
 
     rec = read_npz(path)
     t = rec.n_frames // 2
@@ -304,10 +305,6 @@ def _part(args: argparse.Namespace) -> tuple[Any, Any, str]:
 
 def _print_accuracy(res: dict[str, Any], args: argparse.Namespace) -> None:
     """The accuracy grid's tables, and its Pareto plot where matplotlib is installed."""
-    from cfsr.bench import format_rows
-    from cfsr.cli._extras import install_hint
-    from cfsr.plots import have_matplotlib, plot_pareto
-
     cols = [
         ("method", "method", ""),
         ("scene", "scene", ""),
@@ -350,8 +347,6 @@ def _print_accuracy(res: dict[str, Any], args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
-
-    from cfsr.cli._extras import require_extra
 
     # checked before the run, not after minutes of work
     if getattr(args, "cluster", None):

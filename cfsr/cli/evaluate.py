@@ -9,6 +9,14 @@ from pathlib import Path
 
 from cfsr.cli._common import parse_times
 from cfsr.cli.simulate import SCENE_NAMES
+from cfsr.evaluation import (
+    evaluate,
+    evaluate_reds,
+    format_table,
+    split_method_specs,
+    summarize,
+)
+from cfsr.simulate import Noise
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,15 +68,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cfsr.evaluation import (
-        evaluate,
-        evaluate_reds,
-        format_table,
-        split_method_specs,
-        summarize,
-    )
-    from cfsr.simulate import Noise
-
     specs = split_method_specs(args.methods) if args.methods else None
     progress = not args.quiet and sys.stderr.isatty()
     if args.reds is not None:

@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 
+from cfsr.methods import methods
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="machine-readable output")
 
 
 def run(args: argparse.Namespace) -> int:
-    from cfsr.methods import methods
-
     ms = methods()
     if args.json:
         print(json.dumps(ms, indent=2))

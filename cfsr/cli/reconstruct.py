@@ -10,6 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from cfsr.batch import ChunkTask, plan_chunks, run_batch
 from cfsr.cli._common import (
     add_input_arguments,
     add_pool_arguments,
@@ -18,6 +19,11 @@ from cfsr.cli._common import (
     parse_params,
     parse_times,
 )
+from cfsr.cli._extras import require_extra
+from cfsr.defects import with_defects
+from cfsr.display import auto_gain, to_display
+from cfsr.methods import get_method, resolve_params
+from cfsr.offline import stream_reconstruct
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -120,12 +126,7 @@ def _read_kwargs(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from cfsr.batch import ChunkTask, plan_chunks, run_batch
-    from cfsr.methods import get_method, resolve_params
-
     if args.cluster:
-        from cfsr.cli._extras import require_extra
-
         require_extra("cluster")
     params = parse_params(args.param)
     m = get_method(args.method)
@@ -193,10 +194,6 @@ def run(args: argparse.Namespace) -> int:
 def _video(args: argparse.Namespace, rec, method: str, times: list[int], params: dict) -> None:
     import cv2
     from tqdm import tqdm
-
-    from cfsr.defects import with_defects
-    from cfsr.display import auto_gain, to_display
-    from cfsr.offline import stream_reconstruct
 
     args.video.parent.mkdir(parents=True, exist_ok=True)
     h, w = rec.layout.height, rec.layout.width

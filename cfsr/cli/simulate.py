@@ -6,6 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from cfsr.cli._common import count_type
+from cfsr.datfile import MAX_FRAMES, MAX_SIDE_PX
+from cfsr.simulate import SCENES, Noise, check_dat_sizes, gt_path, make_scene, simulate_to_dat
+
 # Kept in sync with cfsr.simulate.SCENES (checked by the tests); listed here so that
 # ``cfsr --help`` does not import numba.
 SCENE_NAMES = (
@@ -26,8 +30,6 @@ SCENE_NAMES = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     # bounds only (the file format's: cfsr.datfile); what the machine has is checked in run()
-    from cfsr.cli._common import count_type
-    from cfsr.datfile import MAX_FRAMES, MAX_SIDE_PX
 
     p.add_argument(
         "scene",
@@ -116,8 +118,6 @@ def check_sizes(args: argparse.Namespace) -> None:
     """Refuse, before anything is allocated or written, a simulation the machine cannot hold
     (:func:`cfsr.simulate.check_dat_sizes`, which ``simulate_to_dat`` also applies), naming
     the flag, the value and the limit (ValueError: exit 2)."""
-    from cfsr.simulate import check_dat_sizes
-
     check_dat_sizes(args.steps, args.height, args.width, args.out, start=args.start,
                     gt_every=args.gt_every,
                     names={k: "--" + k.replace("_", "-")
@@ -126,8 +126,6 @@ def check_sizes(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
-
-    from cfsr.simulate import SCENES, Noise, gt_path, make_scene, simulate_to_dat
 
     name = str(args.scene).strip().lower()
     if name not in SCENES:

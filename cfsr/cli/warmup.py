@@ -5,6 +5,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from cfsr.cli._common import jit_cache_location
+from cfsr.methods import get_method
+from cfsr.methods import methods as registered
+from cfsr.warmup import KernelProgress, is_warm, measured_compile, warm_up
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.description = (
@@ -36,11 +41,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
-
-    from cfsr.cli._common import jit_cache_location
-    from cfsr.methods import get_method
-    from cfsr.methods import methods as registered
-    from cfsr.warmup import KernelProgress, is_warm, measured_compile, warm_up
 
     names = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
     try:  # names checked before any work, so a typo is one line

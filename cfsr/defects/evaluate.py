@@ -27,6 +27,12 @@ from cfsr.defects.correct import (
     plan_donors,
 )
 from cfsr.defects.estimate import DefectParams, classify
+from cfsr.defects.score import score_map
+from cfsr.display import to_display
+from cfsr.evaluation import _score_frames, _specs, _timed_outputs, default_times
+from cfsr.methods.registry import get_method, resolve_params
+from cfsr.simulate import SCENES, make_scene, simulate, star_field
+from cfsr.spikes import SpikeRecording
 
 __all__ = [
     "evaluate_defects",
@@ -41,8 +47,6 @@ DEFECT_NOISE = "defects"
 
 
 def _scene(name: str, height: int, width: int) -> Any:
-    from cfsr.simulate import make_scene, star_field
-
     return star_field(height, width) if name == "stars" else make_scene(name, height, width)
 
 
@@ -50,8 +54,6 @@ def map_over_time(sim: Any, checkpoints: Sequence[int],
                   params: DefectParams | None = None) -> list[dict[str, Any]]:
     """Precision and recall of the map estimated from the first ``n`` steps of ``sim`` (a
     :class:`~cfsr.simulate.Simulation`) against its sensor's true map, for each ``n``."""
-    from cfsr.defects.score import score_map
-
     truth = sim.sensor.defect_map
     counts = np.cumsum(sim.spikes, axis=0, dtype=np.int32)
     out = []
@@ -103,8 +105,6 @@ def correction_cost(rec: CorrectedRecording, window: int, *, reps: int = 20) -> 
 
 def _rows(specs: list[Any], recs: dict[str, Any], gts: list[np.ndarray],
           masks: list[np.ndarray], gain: float, ts: list[int], scene: str) -> list[dict]:
-    from cfsr.evaluation import _score_frames, _timed_outputs
-
     rows = []
     for spec in specs:
         for sensor, rec in recs.items():
@@ -134,11 +134,6 @@ def evaluate_defects(
     the keys of :func:`cfsr.evaluation.evaluate`; per scene the map's precision/recall at each
     checkpoint (steps) and the flags on the clean sensor; the correction's cost per frame.
     """
-    from cfsr.display import to_display
-    from cfsr.evaluation import _specs, _timed_outputs, default_times
-    from cfsr.simulate import simulate
-    from cfsr.spikes import SpikeRecording
-
     specs = _specs(methods, None)
     ts = default_times(steps)
     n = max(int(steps), int(map_steps), max(checkpoints, default=0))
@@ -178,8 +173,6 @@ def _costs(rec: CorrectedRecording, specs: list[Any], rows: list[dict]) -> dict[
     """The correction's cost per frame beside each method's own (same scene, same run): a
     frame's window read through a corrected copy (offline) and corrected in the live ring
     (every step of the window read once, counting and rebuilds included)."""
-    from cfsr.methods.registry import get_method, resolve_params
-
     out: dict[str, Any] = {"defects": int(rec.plan.targets.size) if rec.plan else 0}
     for spec in specs:
         m = get_method(spec.name)
@@ -201,11 +194,6 @@ def clean_sensor_flags(methods: Sequence[str] | str, scenes: Sequence[str] | Non
     map flags after ``map_steps`` steps and, where it flags any, each method's whole-frame
     PSNR change through the correction (none flagged: the spikes, so the outputs, are
     unchanged bit for bit)."""
-    from cfsr.display import to_display
-    from cfsr.evaluation import _score_frames, _specs, _timed_outputs, default_times
-    from cfsr.simulate import SCENES, simulate
-    from cfsr.spikes import SpikeRecording
-
     specs = _specs(methods, None)
     ts = default_times(steps)
     out = []

@@ -494,6 +494,7 @@ def register(method: Method) -> Method:
 
 def _load_all() -> None:
     # Importing the package modules registers every built-in method exactly once.
+    # deferred: a cycle (the cfsr.methods package imports this module before its methods)
     import cfsr.methods  # noqa: F401
 
 

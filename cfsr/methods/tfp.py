@@ -9,7 +9,7 @@ import numpy as np
 
 from cfsr._isi import search_range
 from cfsr._jit import njit
-from cfsr._packed import CHUNK, count_packed, stored_to_image
+from cfsr._packed import CHUNK, count_packed, isi_packed_at, stored_to_image
 from cfsr._words import _load_u64, trailing_zeros
 from cfsr.methods.registry import (
     MAX_WINDOW_STEPS,
@@ -20,6 +20,7 @@ from cfsr.methods.registry import (
     choices_of,
     register,
 )
+from cfsr.methods.tfi import tfi_rate
 
 __all__ = [
     "tfp_extent",
@@ -274,7 +275,6 @@ def static_rate(
     a, b = tfp_span(center, spikes.shape[0], window, mode)
     if layout is not None:
         return _isi_static_packed(spikes, layout, a, b, center, max_isi, tfi)
-    from cfsr.methods.tfi import tfi_rate
 
     rate = isi_span_rate(spikes, a, b, mark=True)
     if tfi is None:
@@ -311,8 +311,6 @@ def fill_sparse_stored(
     """Give the pixels of ``flat`` (per stored pixel, -1 = fewer than two spikes in the span)
     the TFI rate at ``center`` (Eq. 3, ``max_isi`` steps each side, the numbers of
     :func:`cfsr.methods.tfi.tfi_rate_packed`), computed for those pixels only; in place."""
-    from cfsr._packed import isi_packed_at
-
     grid = flat[: h * stored_width].reshape(h, stored_width)[:, :w]
     ys, xs = np.nonzero(grid < 0)
     if ys.size:

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from cfsr.cli._common import available_memory, free_disk
+from cfsr.datfile import MAX_FRAME_PIXELS, MAX_FRAMES, DatWriter
 from cfsr.layout import STEP_RATE_HZ, Layout
 from cfsr.simulate.noise import Noise
 from cfsr.simulate.scenes import Scene, make_scene
@@ -190,9 +192,6 @@ def check_dat_sizes(
     :data:`~cfsr.datfile.MAX_FRAMES`, a ``.dat`` larger than the free disk, ground truth over
     half the available memory. ValueError naming the argument (``names`` maps an argument to
     what the caller calls it, e.g. a command's flags), the value and the limit."""
-    from cfsr.cli._common import available_memory, free_disk
-    from cfsr.datfile import MAX_FRAME_PIXELS, MAX_FRAMES
-
     n = {k: k for k in ("steps", "height", "width", "start", "gt_every")} | dict(names or {})
     h, w = height, width
     if w * h > MAX_FRAME_PIXELS:
@@ -254,8 +253,6 @@ def simulate_to_dat(
 
     Other parameters are those of :func:`simulate`. Returns the ``.dat`` path.
     """
-    from cfsr.datfile import DatWriter
-
     steps = int(steps)
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
