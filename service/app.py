@@ -32,10 +32,21 @@ from cfsr_live.service.body import (
     StrictJsonBody,
     short,
 )
+from cfsr_live.service.deps import TooManyTries, token_ok
 from cfsr_live.service.hub import FrameHub
 from cfsr_live.service.local_pages import LocalPagesOnly
+from cfsr_live.service.routers import (
+    config,
+    debug,
+    health,
+    media,
+    record,
+    session,
+    sources,
+    status,
+)
 from cfsr_live.service.runtime import Runtime
-from cfsr_live.service.security import AttemptThrottle, SessionStore
+from cfsr_live.service.security import AttemptThrottle, HostOriginGuard, SessionStore, allowed_hosts
 from cfsr_live.service.settings import Settings
 
 __all__ = ["create_app", "viewer_dir"]
@@ -63,8 +74,6 @@ def _token_before_body(scope: dict) -> Refusal | None:
     own dependency checks again (the same function), so the answer is the same either way."""
     from starlette.requests import HTTPConnection
 
-    from cfsr_live.service.deps import TooManyTries, token_ok
-
     if scope.get("path") in _OPEN_WITH_BODY:
         return None
     try:
@@ -78,16 +87,6 @@ def _token_before_body(scope: dict) -> Refusal | None:
 
 def create_app(settings: Settings, runtime: Runtime | None = None) -> FastAPI:
     """The app; ``runtime`` is an already started :class:`Runtime` to own (else one is made)."""
-    from cfsr_live.service.routers import (
-        config,
-        debug,
-        health,
-        media,
-        record,
-        session,
-        sources,
-        status,
-    )
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         rt = runtime
@@ -171,8 +170,6 @@ def _add_error_handlers(app: FastAPI) -> None:
 
 def _add_guards(app: FastAPI, settings: Settings) -> None:
     """The middleware every request meets before a route: Host and Origin, then the body."""
-    from cfsr_live.service.security import HostOriginGuard, allowed_hosts
-
     # every request body, strict JSON of bounded size and time, before any route
     # (cfsr_live.service.body); the token is checked before a byte of it is read
     # a quarter of the connections at most wait on bodies: the rest stay free for others

@@ -9,6 +9,8 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
+from cfsr.datfile import write_dat
+from cfsr_live.replay.pattern import pattern_recording
 from cfsr_live.service.settings import cache_dir
 
 __all__ = ["demo_path", "ensure_demo", "DEMO_SCENE"]
@@ -39,6 +41,7 @@ def ensure_demo(steps: int = 6000, *, say: Callable[[str], None] | None = None) 
         say(f"creating the demo recording ({steps} steps, first run only) in {target.parent}")
     try:
         try:
+            # deferred: the simulator loads when the demo is first made, not in `cfsr --help`
             from cfsr.simulate import simulate_to_dat
         except ImportError:
             simulate_to_dat = None  # type: ignore[assignment]
@@ -46,8 +49,6 @@ def ensure_demo(steps: int = 6000, *, say: Callable[[str], None] | None = None) 
             simulate_to_dat(DEMO_SCENE, steps, out, seed=0)
         else:
             log.warning("cfsr.simulate is unavailable; the demo uses the built-in pattern scene")
-            from cfsr.datfile import write_dat
-            from cfsr_live.replay.pattern import pattern_recording
 
             write_dat(out, pattern_recording(steps))
         try:

@@ -21,6 +21,9 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from cfsr.methods import methods as registered
+from cfsr.warmup import WARM_ORDER, is_warm
+
 __all__ = ["KernelWarmup", "KernelStatus", "warmup_enabled", "RECONSTRUCTION_NICE"]
 
 #: ``CFSR_WARMUP=0`` turns the background warm-up off (the test suite does, except where it
@@ -93,9 +96,6 @@ class KernelWarmup:
         """Start compiling in the background unless the kernels are cached (or it is
         disabled); ``first``: the method to compile first (the one the worker runs);
         ``methods``: which (default: all, in :data:`cfsr.warmup.WARM_ORDER`)."""
-        from cfsr.methods import methods as registered
-        from cfsr.warmup import WARM_ORDER, is_warm
-
         if not warmup_enabled():
             return
         known = list(registered())

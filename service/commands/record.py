@@ -10,12 +10,14 @@ import sys
 import time
 from pathlib import Path
 
+from cfsr_live.driver.source import SourceEnded
+from cfsr_live.service import sources
+from cfsr_live.service.recorder import FolderDatWriter, size_cap
+
 HELP = "record spikes from a source (USB camera, replay, simulator) to .dat + sidecar"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from cfsr_live.service import sources
-
     # each kind of source adds its own flags (cfsr_live.service.sources); one must be given
     src = p.add_mutually_exclusive_group(required=True)
     for kind in sources.kinds():
@@ -36,8 +38,6 @@ def _writer(out: Path, info, meta: dict, *, force: bool):
     """The output's writer: created exclusively and never through a link (a name that
     appeared meanwhile, or a dangling link planted there, is refused); ``force`` removes
     what is there first (the link itself, not what it points to)."""
-    from cfsr_live.service.recorder import FolderDatWriter
-
     folder = out.resolve().parent if not out.is_symlink() else out.absolute().parent
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
     try:
@@ -57,12 +57,9 @@ def _writer(out: Path, info, meta: dict, *, force: bool):
 
 
 def run(args: argparse.Namespace) -> int:
-    from cfsr_live.driver.source import SourceEnded
-
     out: Path = args.output
     if os.path.lexists(out) and not args.force:
         raise ValueError(f"{out} exists (use --force to overwrite)")
-    from cfsr_live.service import sources
 
     picked = [(k, s) for k in sources.kinds() if (s := k.spec_from_args(args)) is not None]
     if not picked:  # a flag given an empty value (--sim '')
@@ -77,7 +74,6 @@ def run(args: argparse.Namespace) -> int:
         want = args.frames if args.frames is not None else int(round(args.seconds * info.rate_hz))
         if want < 1:
             raise ValueError("nothing to record: ask for at least one frame")
-        from cfsr_live.service.recorder import size_cap
 
         fb = info.layout.frame_bytes
         cap = size_cap(out.resolve().parent, args.max_bytes, fb, f"one frame ({fb} bytes)")

@@ -17,6 +17,7 @@ from cfsr_live.service.deps import HubDep, require_token, ws_token_ok
 from cfsr_live.service.hub import ClientQueue, FrameHub
 from cfsr_live.service.models import ClientMessage, SchemaModel
 from cfsr_live.service.render import encode_jpeg, encode_png, render_rgb
+from cfsr_live.service.schema import schema_document
 from cfsr_live.service.settings import MAX_FPS_RANGE
 
 router = APIRouter(tags=["media"])
@@ -37,8 +38,6 @@ def _overlays(spec: str, known: tuple[str, ...]) -> tuple[str, ...]:
 @router.get("/api/schema", response_model=SchemaModel,
             summary="the frame message's layout, mask names and colours, heat map, counters")
 async def get_schema(hub: HubDep) -> dict:
-    from cfsr_live.service.schema import schema_document
-
     return schema_document(hub.slot.mask_names)
 
 
