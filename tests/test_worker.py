@@ -432,3 +432,25 @@ def test_a_restarted_step_clock_shows_its_frames_at_once(rec):
         sup.stop()
         ring.close()
         slot.close()
+
+
+def test_a_worker_started_on_a_paused_replay_shows_what_the_ring_holds(rec):
+    """The worker reads the ring from the oldest block it still holds: a replay paused before
+    the worker's first frame (or before it started at all), then sought and stepped, leaves its
+    data in the ring and writes nothing more. The worker's reader started at the ring's head
+    and never saw those blocks, so no frame came until the replay played on."""
+    ring = SpikeRing.create(16, 64, rec.layout.frame_bytes)  # paced: the producer never waits
+    slot = FrameSlot.create(max_pixels=H * W)
+    paced = WorkerConfig(MethodConfig("tfp"), gain=GAIN, max_fps=200.0)
+    sup = WorkerSupervisor(slot, paced, workers=1)
+    try:
+        for a in range(0, 64 * 8, 64):  # what the replay delivered before it paused
+            ring.write(a, rec.packed(a, a + 64))
+        sup.start(str(ring.path), rec.layout)
+        assert sup.ready.wait(120), "worker did not start"
+        wait_until(lambda: (f := slot.read()) is not None and f.method == "tfp", 120,
+                   lambda: f"a frame from the blocks held (slot {slot.stats()})")
+    finally:
+        sup.stop()
+        ring.close()
+        slot.close()
