@@ -7,7 +7,9 @@ checks elsewhere cover only what ``import cfsr`` happens to load."""
 from __future__ import annotations
 
 import ast
+import re
 import tomllib
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -137,3 +139,93 @@ def test_the_rule_catches_an_upward_import():
         ("cfsr_live.service", True), ("cfsr.spikes", False)]
     assert _layer_of("cfsr_live.service.app") == "service" not in ALLOWED["cfsr"]
     assert _layer_of("cfsr_live.driver.usb") == "driver" not in ALLOWED["shm"]
+
+
+# --- imports inside functions --------------------------------------------------------------
+
+#: in-function imports of our own modules that cfsr/ and service/ may keep, at most: a
+#: deferred import hides the module graph from a reader, so one stays only where it keeps a
+#: heavy or system-bound import (numba kernels, FastAPI, pyusb, OpenCV contrib, a
+#: subcommand's stack) away from a light path, and says so
+MAX_DEFERRED = 40
+#: the note a deferred import carries on its line or on the line above its block of imports
+DEFERRED_NOTE = re.compile(r"#\s*deferred:\s*\S")
+#: the folders the limit applies to
+DEFERRED_SCOPE = ("cfsr", "service")
+
+
+class Deferred(NamedTuple):
+    path: Path
+    line: int
+    says_why: bool
+
+
+def _deferred(path: Path, text: str | None = None) -> list[Deferred]:
+    """Each import statement of ours inside a function of ``path`` (its source ``text`` if
+    given), and whether a ``# deferred: why`` note covers it: on one of its own lines, or on
+    the line above the run of import statements it belongs to (blank lines between them
+    allowed, as isort separates groups)."""
+    text = path.read_text() if text is None else text
+    lines = text.splitlines()
+    spans = {n.lineno: n.end_lineno or n.lineno for n in ast.walk(ast.parse(text, str(path)))
+             if isinstance(n, (ast.Import, ast.ImportFrom))}
+    ends = {end: start for start, end in spans.items()}
+    out: dict[int, Deferred] = {}  # one per statement, however many names it imports
+    for imp in _imports(path, text):
+        if not imp.in_function or _layer_of(imp.target) is None or imp.line in out:
+            continue
+        start = above = imp.line
+        while above - 1 in ends or (above > 1 and not lines[above - 2].strip()):
+            above -= 1  # climb the run of imports above this one (blank lines between groups)
+            if above in ends:
+                start = above = ends[above]
+        near = lines[start - 2: start - 1] + lines[imp.line - 1: spans[imp.line]]
+        out[imp.line] = Deferred(path, imp.line, any(DEFERRED_NOTE.search(t) for t in near))
+    return list(out.values())
+
+
+def _all_deferred() -> list[Deferred]:
+    return [d for layer in DEFERRED_SCOPE for p in sorted((REPO / layer).rglob("*.py"))
+            for d in _deferred(p)]
+
+
+def test_own_imports_sit_at_the_top_unless_they_say_why():
+    found = _all_deferred()
+    silent = [f"{d.path.relative_to(REPO)}:{d.line}" for d in found if not d.says_why]
+    assert not silent, ("imports of our own modules inside functions, with no '# deferred: "
+                        "why' note (move them to the top, or say what they keep away):\n"
+                        + "\n".join(silent))
+    by_file = Counter(str(d.path.relative_to(REPO)) for d in found)
+    assert len(found) <= MAX_DEFERRED, (
+        f"{len(found)} in-function imports of our own modules in "
+        f"{'/, '.join(DEFERRED_SCOPE)}/ (at most {MAX_DEFERRED}):\n"
+        + "\n".join(f"{n:4d} {f}" for f, n in by_file.most_common()))
+
+
+def test_the_deferred_rule_sees_silent_and_noted_imports():
+    """The check bites: a silent deferred import of ours is found, a noted one (on its line,
+    above it, or above its run of imports) passes, and imports of other packages and at the
+    top are not counted."""
+    probe = REPO / "cfsr" / "cli" / "_probe.py"
+    src = ("import numpy\n"
+           "from cfsr.layout import Layout\n"
+           "def f():\n"
+           "    import json\n"
+           "    from cfsr.spikes import SpikeRecording\n"
+           "    from ..datfile import (  # deferred: a reason\n"
+           "        read_dat,\n"
+           "    )\n"
+           "    # deferred: another reason\n"
+           "    import cfsr.display\n"
+           "    from cfsr_live.service import app\n"
+           "\n"
+           "    # deferred: a third\n"
+           "    import numpy\n"
+           "\n"
+           "    from cfsr import spikes\n"
+           "\n"
+           "    x = 1\n"
+           "    from cfsr import methods\n"
+           "    return Layout, SpikeRecording, read_dat, app, spikes, methods, x\n")
+    assert [(d.line, d.says_why) for d in _deferred(probe, src)] == [
+        (5, False), (6, True), (10, True), (11, True), (16, True), (19, False)]
