@@ -37,9 +37,6 @@ __all__ = ["TASK_HANG_S", "UNWATCHED_FPS", "FrameWorker"]
 
 
 
-#: seconds ahead of a frame's start that the worker copies the newest ring blocks in; before
-#: that it leaves them in the ring (a skip, counted in ``worker_skip_frames``)
-INGEST_AHEAD_S = 0.05
 #: frames a second with no client watching: enough for ``/readyz`` and ``/metrics`` to see the
 #: worker publish, without spending the machine on frames nobody sees
 UNWATCHED_FPS = 1.0
@@ -236,13 +233,11 @@ class FrameWorker(LadderSteps):
         pushed = 0
         if not self.config.deterministic:
             need_blocks = -(-self.needed_frames() // ring.slot_frames) + 1
-            if reader.backlog > need_blocks + 1 or (
-                reader.backlog and not self._start_due(INGEST_AHEAD_S)
-            ):
-                # counted in reader.skipped_frames; with no frame due soon, the newest blocks
+            if reader.backlog > need_blocks + 1 or (reader.backlog and not self._start_due()):
+                # counted in reader.skipped_frames; until a frame can start, the newest blocks
                 # stay in the ring uncopied (the CPU goes to acquisition and to the pool)
                 reader.skip_to_latest(need_blocks)
-                if not self._start_due(INGEST_AHEAD_S):
+                if not self._start_due():
                     return 0
         budget = time.monotonic() + 0.05
         while True:
@@ -300,19 +295,17 @@ class FrameWorker(LadderSteps):
         self.put("defects_confidence", st["confidence"])
         self.put("defects_gain", int(st["gain"] and d.enabled))
 
-    def _start_due(self, ahead_s: float) -> bool:
-        """Whether a frame (or a stand-in) may start within ``ahead_s`` seconds: the pace
-        allows it, and a pool process is idle or due to finish by its measured cost."""
-        now = time.monotonic() + ahead_s
+    def _start_due(self) -> bool:
+        """Whether a frame (or a stand-in) may start now: the pace allows it and a pool
+        process is idle. Only then are ring blocks copied in (the window's, a few ms): the
+        blocks that arrived while every process was busy are never copied. Copying from 50 ms
+        before a process's measured finish, and all along while it ran past it or computed a
+        first frame (kernels loading, seconds), cost the worker 312 ms of CPU a frame at load
+        9 (52 ms copying only with a process idle), taken from the pool and acquisition."""
+        now = time.monotonic()
         if self._first_pending and self._first_since is not None and now >= self._fallback_next:
             return True  # a stand-in, computed here
-        if now < self._next_out:
-            return False
-        if self.pool.idle:
-            return True
-        ends = [k.submitted + self._ema[k.quality] / 1e3 for k in self._tasks.values()
-                if k.quality in self._ema and not k.cold]
-        return not ends or now >= min(ends)
+        return now >= self._next_out and bool(self.pool.idle)
 
     def _arrival_of(self, step: int) -> float:
         for end, t in self._arrival:
