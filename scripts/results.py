@@ -311,33 +311,33 @@ def tiers_section(ti: dict[str, Any]) -> list[str]:
     return out
 
 
-def compile_section(co: dict[str, Any]) -> list[str]:
+def compile_section(compiled: dict[str, Any]) -> list[str]:
     def cell(v: dict[str, float]) -> str:
         return f"{v['median']:.1f} ({v['min']:.1f}-{v['max']:.1f})"
 
     out = _table_head(
         "Compiling the kernels",
         "CPU seconds numba spends on an empty cache (a fresh install), median of "
-        f"{co['runs']} run(s) with their range, each in a new process: every method together "
+        f"{compiled['runs']} run(s) with their range, each in a new process: every method together "
         "(the warm-up's order; kernels shared by several methods count under the first), and "
         "each method alone (its first use). Each kernel compiles once per machine: a process "
         "that needs one another process is compiling waits for it and loads the result.",
         ["method", "in the warm-up (CPU s)", "alone (CPU s)", "kernels"])
-    for m, row in co["alone"].items():
-        out.append(f"| {m} | {cell(co['in_all_cpu_s'][m])} | {cell(row['cpu_s'])} | "
+    for m, row in compiled["alone"].items():
+        out.append(f"| {m} | {cell(compiled['in_all_cpu_s'][m])} | {cell(row['cpu_s'])} | "
                    f"{len(row['kernels'])} |")
-    out.append(f"| **all** | {cell(co['all_cpu_s'])} | | |")
+    out.append(f"| **all** | {cell(compiled['all_cpu_s'])} | | |")
     out += ["", "The costliest kernels (own CPU seconds, median):", "",
             "| kernel | CPU s |", "|---|---|"]
-    for k, v in list(co["kernels_cpu_s"].items())[:8]:
+    for k, v in list(compiled["kernels_cpu_s"].items())[:8]:
         out.append(f"| `{k}` | {v:.2f} |")
     out += ["", "A frame after the compile, in the pool's one-thread mode (CPU ms, median of "
             "the runs' medians; a 400 x 250 moving scene):", "",
             "| method | CPU ms per frame |", "|---|---|"]
-    for m, f in co["frame_cpu_ms_one_thread"].items():
+    for m, f in compiled["frame_cpu_ms_one_thread"].items():
         out.append(f"| {m} | {cell(f)} |")
-    if "pool_start_s" in co:
-        ps = co["pool_start_s"]
+    if "pool_start_s" in compiled:
+        ps = compiled["pool_start_s"]
         out += ["", f"Starting a pool of two one-thread processes on a filled cache (spawn, "
                 f"imports, kernels loaded; the wait before its first frame): "
                 f"{ps['median']:.2f} s ({ps['min']:.2f}-{ps['max']:.2f}). "
@@ -358,8 +358,8 @@ def _defect_psnr(rows: list[dict[str, Any]], scene: str, method: str) -> str:
         return (f"{_f(v, '.2f')} ({_f(v - clean, '+.2f')})" if _ok(v) and _ok(clean)
                 else _f(v, ".2f"))
 
-    keys = ("defective", "defective+corrected", "hot+dead", "hot+dead+corrected",
-            "clean+corrected")
+    keys = ("defective", "defective+corrected", "defective+calibrated", "hot+dead",
+            "hot+dead+corrected", "clean+corrected", "clean+calibrated")
     return f"| {scene} | {method} | {_f(clean, '.2f')} | " + " | ".join(map(vs, keys)) + " |"
 
 
@@ -369,12 +369,15 @@ def defects_section(de: dict[str, Any]) -> list[str]:
         "Sensor defects",
         "`cfsr bench --defects`: the same content on a clean sensor and on a defective one "
         f"(`{de['noise']}` noise: hot and dead pixels and a threshold spread; `hot+dead`: the "
-        "same without the spread), read as recorded and through the defect correction with "
-        f"the map found in the first {de['map_steps']:,} steps. Whole-frame PSNR (dB) at "
+        "same without the spread), read as recorded, through the defect correction with "
+        f"the map found in the first {de['map_steps']:,} steps (`corrected`), and through a "
+        "flat-field calibration of the same sensor (`calibrated`: its map and every pixel's "
+        "gain, divided out of the output). Whole-frame PSNR (dB) at "
         f"steps {', '.join(map(str, de['times']))}, the change against the clean sensor in "
-        "brackets; `clean+corrected` is the clean sensor through the correction.",
-        ("scene", "method", "clean", "defective", "corrected", "hot+dead", "corrected",
-         "clean+corrected"))
+        "brackets; `clean+corrected` and `clean+calibrated` are the clean sensor through "
+        "each.",
+        ("scene", "method", "clean", "defective", "corrected", "calibrated", "hot+dead",
+         "corrected", "clean+corrected", "clean+calibrated"))
     for scene in _distinct(rows, "scene"):
         for m in _order([r["method"] for r in rows if r["scene"] == scene]):
             out.append(_defect_psnr(rows, scene, m))
@@ -387,6 +390,14 @@ def defects_section(de: dict[str, Any]) -> list[str]:
                        f"{c['steps']:,} | {_f(c['hot_precision'], '.3f')} | "
                        f"{_f(c['hot_recall'], '.3f')} | {_f(c['dead_precision'], '.3f')} | "
                        f"{_f(c['dead_recall'], '.3f')} | {m['clean_flags']} |")
+    cal = {k: m["calibration"] for k, m in de["maps"].items() if "calibration" in m}
+    if cal:
+        out += ["", "The flat-field calibration (2,000 steps of uniform light) against the "
+                "truth: " + "; ".join(
+                    f"{k}: hot {_f(c['hot_precision'], '.3f')} / {_f(c['hot_recall'], '.3f')}, "
+                    f"dead {_f(c['dead_precision'], '.3f')} / {_f(c['dead_recall'], '.3f')} "
+                    f"(precision / recall), gain error {c['gain_rms_error']:.4f} rms against "
+                    f"a spread of {c['true_gain_sd']:.4f}" for k, c in cal.items()) + "."]
     clean = de.get("clean_scenes", [])
     if clean:
         changed = [r for r in clean if r["flags"]]
@@ -398,13 +409,24 @@ def defects_section(de: dict[str, Any]) -> list[str]:
                        f"{k[:-6]} {v:+.2f} dB" for k, v in r.items() if k.endswith("_dpsnr"))
                        for r in changed) + ".")]
     cost = {k: v for k, v in de["cost"].items() if isinstance(v, dict)}
+    new = "copy_ms_per_frame" in next(iter(cost.values()), {})
     out += ["", f"What correcting costs ({de['cost'].get('defects', '-')} flagged pixels, "
-            "wall time in the same run), beside each method's own time per frame: a frame's "
-            "window read offline through a corrected copy, and corrected in the live buffer "
-            "(each step of the window read once; counting and map rebuilds included, per "
-            "streamed step in the last column).", "",
+            + ("CPU time on one thread in the same run, the method's too), beside each "
+               "method's own time per frame: a frame's window corrected in a reconstructor's "
+               "buffer as `cfsr reconstruct` streams it (blocks of 1,024 steps), read through "
+               "a corrected copy (the library's `corrected(rec)` read window by window), and "
+               "corrected in the live worker's buffer (blocks of 256 steps, a frame every "
+               "1,280: 30 frames/s); the last column is what keeping the live map costs per "
+               "streamed step besides (counting, and a rebuild shared out)." if new else
+               "wall time in the same run), beside each method's own time per frame: a "
+               "frame's window read offline through a corrected copy, and corrected in the "
+               "live buffer (each step of the window read once; counting and map rebuilds "
+               "included, per streamed step in the last column)."), "",
             "| method | window (steps) | method ms per frame | offline ms (share) | "
-            "live ms (share) | live µs per step |", "|---|---|---|---|---|---|"]
+            + ("copy ms (share) | " if new else "")
+            + "live ms (share) | "
+            + ("map upkeep µs per step |" if new else "live µs per step |"),
+            "|---|---|---|---|---|---|" + ("---|" if new else "")]
 
     def share(ms: Any, frac: Any) -> str:
         return f"{_f(ms, '.3f')} ({_f(100 * frac if _ok(frac) else None, '.1f')} %)"
@@ -413,20 +435,22 @@ def defects_section(de: dict[str, Any]) -> list[str]:
         c = cost[m]
         out.append(f"| {m} | {c['window_steps']} | {_f(c['method_ms_per_frame'], '.1f')} | "
                    f"{share(c['ms_per_frame'], c.get('fraction'))} | "
-                   f"{share(c.get('live_ms_per_frame'), c.get('live_fraction'))} | "
-                   f"{_f(c['live_us_per_step'], '.2f')} |")
+                   + (f"{share(c['copy_ms_per_frame'], c.get('copy_fraction'))} | "
+                      if new else "")
+                   + f"{share(c.get('live_ms_per_frame'), c.get('live_fraction'))} | "
+                   f"{_f(c.get('upkeep_us_per_step', c.get('live_us_per_step')), '.2f')} |")
     out.append("")
     return out
 
 
-def compile_table(co: dict[str, Any]) -> str:
+def compile_table(compiled: dict[str, Any]) -> str:
     """The package's measured table: per method, the kernels it compiles alone and their
     CPU seconds (median), for the progress bars' 'n of N' and estimate."""
-    table = {"machine": co.get("machine", {}),
+    table = {"machine": compiled.get("machine", {}),
              "methods": {m: {"cpu_s": round(row["cpu_s"]["median"], 2),
-                             "kernels": row["kernels"]} for m, row in co["alone"].items()}}
-    if "pool_start_s" in co:
-        table["pool_start_s"] = round(co["pool_start_s"]["median"], 2)
+                             "kernels": row["kernels"]} for m, row in compiled["alone"].items()}}
+    if "pool_start_s" in compiled:
+        table["pool_start_s"] = round(compiled["pool_start_s"]["median"], 2)
     return json.dumps(table, indent=1, sort_keys=True) + "\n"
 
 
@@ -468,10 +492,10 @@ def render(folder: Path = BENCH) -> str:
     if ti:
         out += tiers_section(ti)
         out += [f"Machine: {_machine(ti)}.", ""]
-    co = _load("compile.json", folder)
-    if co:
-        out += compile_section(co)
-        out += [f"Machine: {_machine(co)}.", ""]
+    compiled = _load("compile.json", folder)
+    if compiled:
+        out += compile_section(compiled)
+        out += [f"Machine: {_machine(compiled)}.", ""]
     de = _load("defects.json", folder)
     if de:
         out += defects_section(de)
@@ -505,8 +529,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-plots", action="store_true", help="write the page only")
     args = ap.parse_args(argv)
     text = render()
-    co = _load("compile.json", BENCH)
-    table = compile_table(co) if co else None
+    compiled = _load("compile.json", BENCH)
+    table = compile_table(compiled) if compiled else None
     if args.check:
         stale = [p for p, t in ((PAGE, text), (TABLE, table))
                  if t is not None and (not p.exists() or p.read_text() != t)]

@@ -38,6 +38,11 @@ def print_defects(res: dict[str, Any]) -> None:
     for scene, m in res["maps"].items():
         print(f"\n{scene}: {m['true_hot']} hot, {m['true_dead']} dead; "
               f"{m['clean_flags']} flagged on the clean sensor")
+        if "calibration" in m:
+            c = m["calibration"]
+            print(f"flat-field calibration: hot {c['hot_precision']}/{c['hot_recall']}, dead "
+                  f"{c['dead_precision']}/{c['dead_recall']} (precision/recall), gain error "
+                  f"{c['gain_rms_error']:.4f} rms against a spread of {c['true_gain_sd']:.4f}")
         print(format_rows(m["over_time"], [
             ("steps", "steps", ""), ("hot_precision", "hot precision", ".3f"),
             ("hot_recall", "hot recall", ".3f"), ("dead_precision", "dead precision", ".3f"),
@@ -50,6 +55,7 @@ def print_defects(res: dict[str, Any]) -> None:
     print(format_rows([{"method": k, **v} for k, v in cost.items()], [
         ("method", "method", ""), ("window_steps", "window", ""),
         ("method_ms_per_frame", "method ms", ".1f"), ("ms_per_frame", "offline ms", ".3f"),
-        ("fraction", "share", ".3f"), ("live_ms_per_frame", "live ms", ".3f"),
-        ("live_fraction", "share", ".3f"), ("live_us_per_step", "live us/step", ".2f"),
+        ("fraction", "share", ".3f"), ("copy_ms_per_frame", "copy ms", ".3f"),
+        ("copy_fraction", "share", ".3f"), ("live_ms_per_frame", "live ms", ".3f"),
+        ("live_fraction", "share", ".3f"), ("upkeep_us_per_step", "upkeep us/step", ".2f"),
     ]))

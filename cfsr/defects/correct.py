@@ -4,8 +4,9 @@ A hot or dead pixel takes, step by step, the spikes of one good neighbour (its *
 the good side neighbours, the one whose long-run rate is the median of theirs; diagonals when
 no side neighbour is good). Every method then sees a pixel with a plausible rate and plausible
 intervals, so TFI, TFP, TFA, TFSTP, SNM, CSR and CFSR gain alike; the copy is done on the
-packed words (:func:`correct_packed`), one bit per defect per step, so it costs next to
-nothing beside a reconstruction.
+packed words (:func:`correct_packed`), one bit per defect per step. Defects spread over
+every cache line of a frame, so correcting a window reads and writes all of it: its cost is
+bounded by memory (docs/results.md, "Sensor defects").
 
 Two places run it, both through :func:`_copy_bits`: :class:`DefectCorrector` in the buffer of
 a :class:`~cfsr.streaming.StreamingReconstructor` (the live path: it learns the map online
@@ -296,11 +297,18 @@ def estimate_map(rec: SpikeRecording, steps: int = 2000, *,
 def calibrate(rec: SpikeRecording, steps: int | None = None) -> DefectMap:
     """A flat-field calibration: the defect map and every pixel's gain
     (:func:`cfsr.defects.gain.gain_from_counts`) from ``rec``, a recording of uniform light,
-    over its first ``steps`` steps (default all). A sensor with shot noise needs about
+    over its first ``steps`` steps (default all); hot are also the pixels far above the
+    gains' spread. A sensor with shot noise needs about
     ``(1 / precision)**2`` spikes a pixel: 10,000 (a second at 0.25 spikes/step) for 1 %."""
     found, counts = estimate_map(rec, rec.n_frames if steps is None else steps)
-    return DefectMap(found.hot, found.dead, found.steps, "calibration",
-                     gain_from_counts(counts, found.steps, found.mask))
+    # uniform light has no texture to hide a hot pixel in: one whose count stands 8 robust
+    # deviations of the spread (at least 20 %) above the median is hot, where the stream's
+    # rule, made to spare textures, can miss the faintest ones beside a bright neighbour
+    g = counts / max(1.0, float(np.median(counts[~found.mask])))
+    spread = 1.4826 * float(np.median(np.abs(g[~found.mask] - 1.0)))
+    hot = found.hot | ((g > 1.0 + max(8.0 * spread, 0.2)) & ~found.dead)
+    return DefectMap(hot, found.dead, found.steps, "calibration",
+                     gain_from_counts(counts, found.steps, hot | found.dead))
 
 
 def corrected(rec: SpikeRecording, defect_map: DefectMap | None = None, *,

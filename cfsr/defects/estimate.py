@@ -75,7 +75,7 @@ class DefectParams:
     bump: float = 0.3
     dead_spikes: float = 12.0
     run: int = 64
-    duty: int = 32
+    duty: int = 128
     refresh: int = 512
     refresh_ready: int = 16384
 
