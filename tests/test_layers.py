@@ -7,7 +7,10 @@ checks elsewhere cover only what ``import cfsr`` happens to load."""
 from __future__ import annotations
 
 import ast
+import os
 import re
+import subprocess
+import sys
 import tomllib
 from collections import Counter
 from collections.abc import Iterator
@@ -229,3 +232,29 @@ def test_the_deferred_rule_sees_silent_and_noted_imports():
            "    return Layout, SpikeRecording, read_dat, app, spikes, methods, x\n")
     assert [(d.line, d.says_why) for d in _deferred(probe, src)] == [
         (5, False), (6, True), (10, True), (11, True), (16, True), (19, False)]
+
+
+# --- the CLI loads the command it runs, and no other -----------------------------------------
+
+def _cli_modules_after(argv: list[str]) -> list[str]:
+    """The command modules (offline and plugin) loaded by ``cfsr ARGV`` in a fresh process."""
+    code = ("import contextlib, io, sys\n"
+            "from cfsr.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()):\n"
+            "    try:\n"
+            f"        main({argv!r})\n"
+            "    except SystemExit:\n"
+            "        pass\n"
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith(\n"
+            "    ('cfsr.cli.', 'cfsr_live.service.commands.')) and '._' not in m)))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True, env={**os.environ, "CFSR_WARMUP": "0"})
+    return out.stdout.split()
+
+
+def test_the_cli_imports_only_the_command_it_runs():
+    """Dispatch is lazy: ``cfsr --help`` lists every command (plugins' help read from their
+    source) and imports none of their modules; a command imports its own module only."""
+    assert _cli_modules_after(["--help"]) == []
+    assert _cli_modules_after(["methods"]) == ["cfsr.cli.methods"]
+    assert _cli_modules_after(["serve", "--help"]) == ["cfsr_live.service.commands.serve"]

@@ -9,20 +9,23 @@ package never imports anything above it: an entry point names a module that defi
 Dispatch is lazy: the parser lists every command from the tables here, by name and one-line
 help, and imports only the module of the command that runs (to add its arguments and run it),
 so a command module imports what it needs at its top, and ``cfsr info`` never loads FastAPI
-or the benchmark. ``cfsr --help`` imports the plugin commands for their ``HELP`` only.
+or the benchmark. ``cfsr --help`` reads a plugin command's ``HELP`` from its source (a string
+literal at its top level) and imports none of them.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import sys
 from collections.abc import Collection
 from importlib.metadata import EntryPoint, PackageNotFoundError, entry_points
 from importlib.metadata import version as dist_version
+from pathlib import Path
 
 import cfsr
-from cfsr._heap import keep_freed_memory
 from cfsr.cli._extras import EXTRAS, MissingExtra, install_hint, missing_extra_message
 
 __all__ = ["COMMANDS", "PLUGIN_GROUP", "build_parser", "main"]
@@ -73,11 +76,33 @@ def _plugins() -> dict[str, EntryPoint]:
     return out
 
 
+def _plugin_help(ep: EntryPoint) -> str | None:
+    """A plugin command's ``HELP`` line, read from its module's source without running it (a
+    string literal assigned at the top level); None where it is not written so."""
+    try:
+        spec = importlib.util.find_spec(ep.module)  # imports the parent packages only
+    except ImportError:
+        return None
+    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+        return None
+    try:
+        tree = ast.parse(Path(spec.origin).read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, UnicodeDecodeError):
+        return None
+    for node in tree.body:
+        if (isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant)
+                and isinstance(node.value.value, str)
+                and any(isinstance(t, ast.Name) and t.id == "HELP" for t in node.targets)):
+            return node.value.value
+    return None
+
+
 def build_parser(full: Collection[str] | None = None) -> argparse.ArgumentParser:
     """The ``cfsr`` parser. ``full``: the commands whose modules are imported to add their
     arguments (None: every command, as the documentation checks read every option); the
-    others are listed by name and help only. With ``full`` empty (``cfsr --help``) the plugin
-    commands are imported for their help line; with a command named, only that one."""
+    others are listed by name and help only. With ``full`` empty (``cfsr --help``) a plugin
+    command's help line is read from its source (imported only where it is not a literal);
+    with a command named, only that one is imported."""
     parser = _Parser(
         prog="cfsr",
         description="Spike-camera reconstruction: library, offline tools and live service. "
@@ -96,9 +121,11 @@ def build_parser(full: Collection[str] | None = None) -> argparse.ArgumentParser
     plugins = _plugins()
     for name in sorted(set(plugins) | set(EXTRA_COMMANDS)):
         extra, help_ = EXTRA_COMMANDS.get(name, (None, name))
-        if name in plugins and full and name not in full:  # listed, not run: not imported
-            sub.add_parser(name, help=help_).set_defaults(_module=plugins[name].module)
-            continue
+        if name in plugins and full is not None and name not in full:
+            listed = help_ if full else _plugin_help(plugins[name])  # listed, not run
+            if listed is not None:
+                sub.add_parser(name, help=listed).set_defaults(_module=plugins[name].module)
+                continue
         try:
             mod = plugins[name].load() if name in plugins else None
             problem = None if mod is not None else "not installed"
@@ -130,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     mod = importlib.import_module(args._module)
+    # deferred: ctypes loads when a command runs, not for --help or the web process's version()
+    from cfsr._heap import keep_freed_memory
+
     keep_freed_memory()  # long runs reuse freed frame arrays instead of faulting pages in
     try:
         return int(mod.run(args) or 0)
