@@ -15,6 +15,7 @@ from livehelpers import wait_until
 
 import cfsr
 from cfsr import warmup
+from cfsr_live.service import kernel_warmup
 from cfsr_live.service.kernel_warmup import RECONSTRUCTION_NICE, KernelWarmup
 
 # the package, not the function cfsr.methods() that shadows it as an attribute of cfsr
@@ -31,7 +32,7 @@ def _cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedP
 def test_warm_up_runs_each_method_and_marks_a_complete_warm_up(tmp_path, monkeypatch):
     # two registered methods only, and the marker in tmp_path: a complete warm-up of them
     real = REGISTRY.methods()
-    monkeypatch.setattr(REGISTRY, "methods", lambda: {k: real[k] for k in ("tfi", "tfp")})
+    monkeypatch.setattr(warmup, "registered", lambda: {k: real[k] for k in ("tfi", "tfp")})
     marker = tmp_path / "cfsr-warm-x"
     monkeypatch.setattr(warmup, "marker_path", lambda: marker)
     seen = []
@@ -82,7 +83,7 @@ def test_cli_lines_and_errors(tmp_path):
 
 def test_background_warm_up_reports_progress_and_finishes(monkeypatch):
     monkeypatch.setenv("CFSR_WARMUP", "1")
-    monkeypatch.setattr(warmup, "is_warm", lambda: False)
+    monkeypatch.setattr(kernel_warmup, "is_warm", lambda: False)
     k = KernelWarmup()
     k.start(first="tfi", methods=["tfp", "tfi"])
     st = k.status()
@@ -101,7 +102,7 @@ def test_background_warm_up_runs_at_the_pools_priority_and_stops_with_the_server
 ):
     monkeypatch.setenv("CFSR_WARMUP", "1")
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))  # nothing cached: CFSR compiles
-    monkeypatch.setattr(warmup, "is_warm", lambda: False)
+    monkeypatch.setattr(kernel_warmup, "is_warm", lambda: False)
     k = KernelWarmup()
     k.start(methods=["cfsr"])
     proc = k._proc
@@ -119,7 +120,7 @@ def test_background_warm_up_runs_at_the_pools_priority_and_stops_with_the_server
 
 def test_cached_kernels_or_disabled_warm_up_start_nothing(monkeypatch):
     monkeypatch.setenv("CFSR_WARMUP", "1")
-    monkeypatch.setattr(warmup, "is_warm", lambda: True)
+    monkeypatch.setattr(kernel_warmup, "is_warm", lambda: True)
     k = KernelWarmup()
     k.start()
     assert k._proc is None and k.status().state == "ready"
