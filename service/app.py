@@ -175,6 +175,7 @@ def _add_guards(app: FastAPI, settings: Settings) -> None:
     # a quarter of the connections at most wait on bodies: the rest stay free for others
     # (/healthz, the viewer) however many clients stall their bodies
     app.add_middleware(StrictJsonBody, admit=_token_before_body,
+                       timeout_s=settings.body_timeout_s,
                        max_in_flight=max(4, min(MAX_BODIES_IN_FLIGHT,
                                                 settings.max_connections // 4)))
     # every HTML page loads from this service only (cfsr_live.service.local_pages)

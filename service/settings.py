@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from cfsr.datfile import MIN_GAIN
 from cfsr_live.driver.source import ReplayMode
+from cfsr_live.service.body import BODY_TIMEOUT_S
 
 if TYPE_CHECKING:
     from cfsr_live.service.config import Quality
@@ -56,6 +57,13 @@ __all__ = [
 ]
 
 
+def _httpproto() -> Any:
+    # deferred: the parser of `cfsr serve` needs no uvicorn
+    from cfsr_live.service import httpproto
+
+    return httpproto
+
+
 def _default_workers() -> int:
     """One single-threaded reconstruction process per usable core (measured: on 2 cores two
     processes of one thread give 2-3x the frames of one process of two threads)."""
@@ -63,6 +71,18 @@ def _default_workers() -> int:
     from cfsr.pool import default_workers
 
     return default_workers(1)
+
+
+def _timeout_s(var: str, default: float) -> float:
+    """Seconds from environment variable ``var`` (tests that wait a timeout out lower it),
+    else ``default``; a value that is not a number of seconds in (0, 3600] is refused."""
+    text = os.environ.get(var)
+    if text is None:
+        return default
+    value = float(text)
+    if not 0 < value <= 3600:  # NaN fails too
+        raise ValueError(f"{var}={text!r}: seconds in (0, 3600] expected")
+    return value
 
 
 def cache_dir() -> Path:
@@ -155,6 +175,12 @@ class Settings:
     #: limit at start (:func:`cfsr_live.service.httpproto.connection_cap`)
     max_connections: int = 1000
     demo_steps: int = int(os.environ.get("CFSR_DEMO_STEPS", "6000"))
+    #: seconds a client has to complete a request head (service/httpproto.py), then its body
+    #: (service/body.py, 408 after); ``CFSR_HEADER_TIMEOUT_S`` / ``CFSR_BODY_TIMEOUT_S``
+    header_timeout_s: float = field(default_factory=lambda: _timeout_s(
+        "CFSR_HEADER_TIMEOUT_S", _httpproto().HEADER_TIMEOUT_S))
+    body_timeout_s: float = field(default_factory=lambda: _timeout_s(
+        "CFSR_BODY_TIMEOUT_S", BODY_TIMEOUT_S))
     #: compile every method's kernels in a background process when they are not cached yet
     #: (``cfsr serve`` turns it on unless ``--no-warmup``; service.kernel_warmup)
     warmup: bool = False

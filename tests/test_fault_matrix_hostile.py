@@ -34,6 +34,12 @@ from livehelpers import REPO, LiveServer, segments_of, write_pattern, ws_frames
 pytestmark = [pytest.mark.timeout(900)]
 
 TOKEN = "hostile-matrix-token-7f3a9c"
+#: the servers' request-head and request-body timeouts, s (CFSR_HEADER_TIMEOUT_S,
+#: CFSR_BODY_TIMEOUT_S; 10 s by default), lowered so the rows that wait them out wait less.
+#: The body's stays longer than _healthz_held's 2 s allowance: a /healthz starved by stalled
+#: bodies until they time out still shows.
+HEAD_S, BODY_S = 2.0, 5.0
+TIMEOUTS = {"CFSR_HEADER_TIMEOUT_S": str(HEAD_S), "CFSR_BODY_TIMEOUT_S": str(BODY_S)}
 
 
 class Ctx:
@@ -528,15 +534,15 @@ def row_bodies_wait_for_the_token_and_a_deadline(c: Ctx) -> None:
         for s in socks:
             assert s.recv(4096).startswith(b"HTTP/1.1 401"), "a body was awaited before the token"
         assert time.monotonic() - t0 < 10
-        # with it: at most 64 bodies are awaited, the rest refused at once, all within 10 s
+        # with it: at most 64 bodies are awaited, the rest refused at once, all within BODY_S
         held = []
         for _ in range(100):
             s = socket.create_connection(("127.0.0.1", c.s.port), timeout=30)
             s.sendall((head + auth + "\r\n{").encode())
             held.append(s)
         socks += held
-        _healthz_held(c, quiet, _healthz_times(c, 12.0))
-        # the old server held these bodies for ever: now 408 after 10 s, or 503 at once
+        _healthz_held(c, quiet, _healthz_times(c, BODY_S + 2))
+        # the old server held these bodies for ever: now 408 after BODY_S, or 503 at once
         answered = sum(_answered(s) for s in held)
         assert answered == len(held), f"{len(held) - answered} stalled bodies still held"
     finally:
@@ -737,7 +743,7 @@ def ctx(tmp_path_factory, install):
     write_pattern(data / "a.dat", 3000)
     s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data),
                     "--log-level", "trace"], token=TOKEN, command=[*install.cfsr, "serve"],
-                   cwd=install.cwd, env={**install.env, "CFSR_TOKEN": TOKEN})
+                   cwd=install.cwd, env={**install.env, **TIMEOUTS, "CFSR_TOKEN": TOKEN})
     s.cmd = [x for x in s.cmd if x != TOKEN]
     with s:
         yield Ctx(s, data, outside)
@@ -771,13 +777,14 @@ def test_every_ending_signal_stops_cleanly(tmp_path, sig, group):
     s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data),
                     "--speed", "0.05"], env=_env())
     with s:
+        # the worker is up (a signal to the group while it is still importing is another
+        # matter: it has not yet set its own signal dispositions); the recording starts
+        # after, so that however long the worker takes it is still running at the signal
+        s.wait_for(lambda x: x["worker"]["frames_out"] > 0, 120, "frames from the worker")
         r = s.post("/api/record", json={"action": "start", "name": "sig",
                                         "max_bytes": 200_000_000})
         assert r.status_code == 200, r.text
-        # the worker is up (a signal to the group while it is still importing is another
-        # matter: it has not yet set its own signal dispositions)
-        s.wait_for(lambda x: x["recording"]["frames"] > 0 and x["worker"]["frames_out"] > 0,
-                   120, "frames on disk and from the worker")
+        s.wait_for(lambda x: x["recording"]["frames"] > 0, 60, "frames on disk")
         pid = s.proc.pid
         assert len(segments_of(pid)) == 2
         (os.killpg if group else os.kill)(pid, getattr(signal, sig))
@@ -835,8 +842,8 @@ def test_stalled_bodies_do_not_starve_healthz_at_the_open_file_limit(tmp_path, i
     data = tmp_path / "data"
     write_pattern(data / "a.dat", 3000)
     limited = ["bash", "-c", 'ulimit -n 256 && exec "$0" "$@"', *install.cfsr, "serve"]
-    s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data)], env=install.env,
-                   command=limited, cwd=install.cwd)
+    s = LiveServer(["--replay", str(data / "a.dat"), "--data-dir", str(data)],
+                   env={**install.env, **TIMEOUTS}, command=limited, cwd=install.cwd)
     head = (f"PUT /api/config HTTP/1.1\r\nHost: 127.0.0.1:{s.port}\r\n"
             "Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n{").encode()
     with s:
@@ -854,7 +861,7 @@ def test_stalled_bodies_do_not_starve_healthz_at_the_open_file_limit(tmp_path, i
             # while the burst is being accepted a new connection may find the cap full (and
             # be closed, as the burst's own are); once it is in, every /healthz answers
             time.sleep(1.0)
-            stalled = _healthz_times(c, 12.0)
+            stalled = _healthz_times(c, BODY_S + 2)
         finally:
             for sock in socks:
                 sock.close()

@@ -404,3 +404,24 @@ def test_hub_rate_is_the_rate_delivered_below_a_frame_a_second(monkeypatch, pair
             assert reported == pytest.approx(delivered, rel=0.1), (rate, readings)
     finally:
         slot.close()
+
+
+def test_request_timeouts_come_from_the_environment(monkeypatch):
+    """The request-head and request-body timeouts default to the service's own and can be
+    lowered (the fault rows that wait them out do); what is not a number of seconds is
+    refused."""
+    from cfsr_live.service.body import BODY_TIMEOUT_S
+    from cfsr_live.service.httpproto import HEADER_TIMEOUT_S
+
+    monkeypatch.delenv("CFSR_HEADER_TIMEOUT_S", raising=False)
+    monkeypatch.delenv("CFSR_BODY_TIMEOUT_S", raising=False)
+    s = Settings()
+    assert (s.header_timeout_s, s.body_timeout_s) == (HEADER_TIMEOUT_S, BODY_TIMEOUT_S)
+    monkeypatch.setenv("CFSR_HEADER_TIMEOUT_S", "1.5")
+    monkeypatch.setenv("CFSR_BODY_TIMEOUT_S", "2")
+    s = Settings()
+    assert (s.header_timeout_s, s.body_timeout_s) == (1.5, 2.0)
+    for bad in ("nan", "0", "-1", "1e9"):
+        monkeypatch.setenv("CFSR_BODY_TIMEOUT_S", bad)
+        with pytest.raises(ValueError, match="CFSR_BODY_TIMEOUT_S"):
+            Settings()

@@ -369,7 +369,8 @@ def _make_server(settings, args: argparse.Namespace, say, rt, create_app, http):
                 say(f"viewer at {url}  (source: {settings.source.id}"
                     f"{_token_note(settings.token)}; Ctrl+C to stop)")
 
-    http = type("CappedH11Protocol", (http,), {"max_connections": cap})
+    http = type("CappedH11Protocol", (http,), {"max_connections": cap,
+                                                "header_timeout": settings.header_timeout_s})
     trusted = settings.trusted_proxies
     config = uvicorn.Config(
         app,
