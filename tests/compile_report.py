@@ -3,8 +3,9 @@
 Sets ``CFSR_COMPILE_LOG`` (cfsr/_jit.py appends one line per outermost compile) before any
 test runs, so the servers, pool processes and CLI runs the suite starts inherit it, and
 prints the sum at the end: on a cold cache (as in CI) it says what the compile costs the
-suite; on a warm one it should say nothing was compiled. A kernel compiled more than once
-shows where a cache was not shared (the wheel's venvs keep their own).
+suite; on a warm one it should say what the tests that compile into a fresh cache on purpose
+cost, and no more. A kernel compiled more than once shows where a cache was not shared (the
+wheel's venvs share the checkout's: cfsr/_jit.py keys a kernel by its module and content).
 """
 
 from __future__ import annotations
