@@ -67,7 +67,7 @@ def _httpproto() -> Any:
 def _default_workers() -> int:
     """One single-threaded reconstruction process per usable core (measured: on 2 cores two
     processes of one thread give 2-3x the frames of one process of two threads)."""
-    # deferred: keeps the process pool (cfsr.pool) out of the web process; the worker starts it
+    # deferred: cfsr.pool (multiprocessing) loads only when the workers are not given
     from cfsr.pool import default_workers
 
     return default_workers(1)
