@@ -159,3 +159,42 @@ def test_the_worker_corrects_with_the_sources_map_reports_it_and_can_be_switched
     assert sup.wait_config(v, 120) == ("applied", None)
     _shown(sup, slot, rec, before_switch=fixed)
     wait_until(lambda: sup.status(40_000.0).status.defects.state == "off", 30, "state off")
+
+
+def test_the_service_replays_a_recordings_map_switches_it_and_records_it(tmp_path):
+    """End to end: a replayed recording whose sidecar holds a calibration is corrected from
+    its first frame (status ``given``, with its gain); ``PUT /api/config {"defects": false}``
+    turns the correction off and the status says so; a recording made meanwhile keeps the
+    map in its sidecar."""
+    from fastapi.testclient import TestClient
+
+    from cfsr.datfile import write_dat
+    from cfsr_live.service.app import create_app
+    from cfsr_live.service.settings import Settings, SourceSpec
+
+    path = tmp_path / "cal.dat"
+    given = _given()
+    write_dat(path, pattern_recording(3000, height=H, width=W),
+              meta={"defects": given.to_dict()})
+    app = create_app(Settings(data_dir=tmp_path, source=SourceSpec(kind="replay", path=path)))
+    with TestClient(app, base_url="http://127.0.0.1:8000") as client:
+        rt = app.state.runtime
+        assert rt.worker.ready.wait(120), "worker did not start"
+
+        def defects() -> dict:
+            return client.get("/api/status").json()["worker"]["defects"]
+
+        wait_until(lambda: defects()["state"] == "given", 60, lambda: f"given ({defects()})")
+        assert (defects()["hot"], defects()["dead"], defects()["gain"]) == (1, 1, True)
+        assert client.get("/api/config").json()["defects"] is True
+        r = client.post("/api/record", json={"action": "start", "name": "kept"})
+        assert r.status_code == 200, r.text
+        wait_until(lambda: client.get("/api/record").json()["frames"] > 0, 60, "frames")
+        r = client.put("/api/config", json={"defects": False})
+        assert r.status_code == 200 and r.json()["defects"] is False, r.text
+        wait_until(lambda: defects()["state"] == "off", 60, lambda: f"off ({defects()})")
+        assert client.get("/api/config").json()["defects"] is False
+        r = client.post("/api/record", json={"action": "stop"})
+        assert r.status_code == 200, r.text
+        m = map_of(read_dat(tmp_path / "recordings" / "kept.dat"))
+        assert m is not None and np.array_equal(m.hot, given.hot) and m.gain is not None
