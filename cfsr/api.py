@@ -69,7 +69,7 @@ def reconstruct_outputs(
             b = min(rec.n_frames, t + after + 1)
             got[t] = m.run_window(rec, a, b, t, settings, memo)
     fix = getattr(rec, "flatten", None)  # a flat-field gain (cfsr.defects.corrected)
-    return [got[t] if fix is None else fix(got[t]) for t in ts]
+    return [got[t] if fix is None else fix(got[t], m) for t in ts]
 
 
 def reconstruct(

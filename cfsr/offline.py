@@ -73,13 +73,14 @@ def _streamed(
         yield from sr.run(blocks, group)
 
 
-def _flat(rec: SpikeRecording, outs: Iterable[tuple[int, Output]]
+def _flat(rec: SpikeRecording, cfg: MethodConfig, outs: Iterable[tuple[int, Output]]
           ) -> Iterator[tuple[int, Output]]:
-    """``outs`` with a flat-field gain divided out when ``rec`` carries one (a recording read
-    through :func:`cfsr.defects.corrected` with a calibration: ``rec.flatten``)."""
+    """``outs`` of ``cfg`` with a flat-field gain divided out when ``rec`` carries one (a
+    recording read through :func:`cfsr.defects.corrected` with a calibration:
+    ``rec.flatten``)."""
     fix = getattr(rec, "flatten", None)
     for t, out in outs:
-        yield t, (out if fix is None else fix(out))
+        yield t, (out if fix is None else fix(out, cfg.spec))
 
 
 def stream_reconstruct(
@@ -117,13 +118,14 @@ def stream_reconstruct(
         raise ValueError(f"times {bad} outside the recording (0..{rec.n_frames - 1} steps)")
     cfg = MethodConfig(method, params, preset)
     if pool is not None:
-        yield from _flat(rec, pool_outputs(rec, cfg, carry_groups(cfg, ts), pool=pool, carry=True))
+        groups = carry_groups(cfg, ts)
+        yield from _flat(rec, cfg, pool_outputs(rec, cfg, groups, pool=pool, carry=True))
         return
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if workers == 1:
         sr = StreamingReconstructor(cfg, rec.layout, slack=block)
-        yield from _flat(rec, _streamed(rec, sr, ts, block))
+        yield from _flat(rec, cfg, _streamed(rec, sr, ts, block))
         return
     groups = carry_groups(cfg, ts)
     if workers is None:
@@ -133,7 +135,7 @@ def stream_reconstruct(
         else:
             sr = StreamingReconstructor(cfg, rec.layout, slack=block)
             t0 = time.perf_counter()
-            yield from _flat(rec, _streamed(rec, sr, groups[0], block))
+            yield from _flat(rec, cfg, _streamed(rec, sr, groups[0], block))
             per_output = (time.perf_counter() - t0) * 1e3 / len(groups[0])
             groups = groups[1:]
             left_s = per_output * sum(map(len, groups)) / 1e3  # what the rest costs here
@@ -141,9 +143,9 @@ def stream_reconstruct(
             workers = n if per_output >= POOL_MIN_MS and left_s >= 2 * start_s else 1
         if workers == 1:
             sr = StreamingReconstructor(cfg, rec.layout, slack=block)
-            yield from _flat(rec, _streamed(rec, sr, [t for g in groups for t in g], block))
+            yield from _flat(rec, cfg, _streamed(rec, sr, [t for g in groups for t in g], block))
             return
-    yield from _flat(rec, pool_outputs(rec, cfg, groups, workers=workers, threads=threads,
+    yield from _flat(rec, cfg, pool_outputs(rec, cfg, groups, workers=workers, threads=threads,
                                        carry=True))
 
 

@@ -219,7 +219,7 @@ class StreamingReconstructor:
         a = max(self._first, t - self.before)
         b = min(self._next, t + self.after + 1)
         out = self.method.run_window(self, a, b, t, self.params, self.memo)
-        return out if self.defects is None else self.defects.flatten(out)
+        return out if self.defects is None else self.defects.flatten(out, self.method)
 
     def frames(self, a: int, b: int) -> np.ndarray:
         """Buffered frames of steps ``[a, b)`` unpacked to upright ``(b - a, H, W)`` uint8."""

@@ -19,6 +19,7 @@ from typing import Any
 from cfsr.defects import DefectCorrector, DefectMap
 from cfsr.display import auto_gain, to_display
 from cfsr.layout import Layout
+from cfsr.methods.registry import get_method
 from cfsr.pool import FramePool, PoolError, TaskError
 from cfsr.streaming import StreamingReconstructor
 from cfsr_live.driver.source import BlockFlags
@@ -482,7 +483,7 @@ class FrameWorker(LadderSteps):
         ``quality``: the tier that made it ("" for a method without tiers, or a stand-in)."""
         d = self.rec.defects if self.rec is not None else None
         if d is not None:  # a flat-field calibration's gain divided out (every method)
-            out = d.flatten(out)
+            out = d.flatten(out, get_method(method))
         gain = self.config.gain
         g = float(gain) if gain else auto_gain(out.rate)
         img = to_display(out.rate, g)

@@ -150,3 +150,24 @@ def test_every_offline_path_reads_the_same_corrected_and_calibrated_frames():
         assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True)), workers
     plain = [o.rate for o in reconstruct_outputs(rec, "tfi", ts)]
     assert not np.array_equal(plain[1], want[1])
+
+
+def test_a_method_that_borrows_spikes_keeps_its_borrowed_pixels_as_they_are():
+    """CFSR builds its dynamic pixels (its coarse mask) from spikes along the motion, whose
+    gains average out: only its other pixels are divided; a method without such a mask has
+    every pixel divided."""
+    from cfsr.defects import flatten
+    from cfsr.methods.registry import Output, get_method
+
+    rng = np.random.default_rng(1)
+    rate = rng.uniform(0.1, 0.5, (H, W)).astype(np.float32)
+    moving = np.zeros((H, W), bool)
+    moving[10:20, 10:30] = True
+    inv = (1 / GainMap(rng.uniform(0.9, 1.1, (H, W))).gain).astype(np.float32)
+    out = Output(rate, {"coarse": moving})
+    assert get_method("cfsr").borrowed_mask == "coarse" and get_method("csr").borrowed_mask is None
+    cfsr = flatten(out, inv, get_method("cfsr")).rate
+    csr = flatten(out, inv, get_method("csr")).rate
+    np.testing.assert_array_equal(cfsr[moving], rate[moving])
+    np.testing.assert_allclose(cfsr[~moving], rate[~moving] * inv[~moving], rtol=1e-6)
+    np.testing.assert_allclose(csr, rate * inv, rtol=1e-6)

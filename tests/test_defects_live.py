@@ -128,8 +128,14 @@ def _shown(sup, slot, want, before_switch=None, n: int = 3) -> None:
     def shown(source, t: int) -> np.ndarray:
         return to_display(reconstruct_outputs(source, "tfp", [t])[0].rate, GAIN)
 
+    def broken() -> tuple[int, int]:  # a torn read or a gap clips the worker's next windows
+        st = sup.stats()
+        return st.gaps, st.ring_torn
+
+    lost = broken()
+
     def enough() -> bool:
-        nonlocal seq
+        nonlocal seq, lost
         f = slot.read(since=seq)
         if f is None:
             return False
@@ -137,8 +143,13 @@ def _shown(sup, slot, want, before_switch=None, n: int = 3) -> None:
         if before <= t < N - after:
             if _close(f.image, shown(want, t)):
                 seen.append(t)
+            elif broken() != lost:
+                lost = broken()  # not comparable with the file: its window was cut
             else:
-                assert not seen and before_switch is not None, f"step {f.step} differs"
+                d = np.abs(f.image.astype(int) - shown(want, t))
+                assert not seen and before_switch is not None, (
+                    f"step {f.step} differs: {int(d.max())} levels at {int((d > 0).sum())} "
+                    f"pixels, seen {seen}, gaps/torn {lost}")
                 assert _close(f.image, shown(before_switch, t)), f"step {f.step}"
         return len(seen) >= n
 

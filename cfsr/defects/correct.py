@@ -212,10 +212,10 @@ class DefectCorrector:
                 r = x % cap + half * cap
                 _copy_bits(buf[r : r + (y - x)], self.plan.targets, self.plan.donors)
 
-    def flatten(self, out: Any) -> Any:
-        """A method's output with the calibration's gain divided out (when enabled and given:
-        :func:`cfsr.defects.gain.flatten`)."""
-        return flatten(out, self.inv_gain) if self.enabled else out
+    def flatten(self, out: Any, method: Any = None) -> Any:
+        """``method``'s output with the calibration's gain divided out (when enabled and
+        given: :func:`cfsr.defects.gain.flatten`)."""
+        return flatten(out, self.inv_gain, method) if self.enabled else out
 
     def state(self) -> dict[str, Any]:
         """What a status shows: ``state`` (off / learning / ready / given), the counts of hot
@@ -250,9 +250,9 @@ class CorrectedRecording(SpikeRecording):
     plan: DonorPlan | None = None
     inv_gain: np.ndarray | None = None
 
-    def flatten(self, out: Any) -> Any:
-        """A method's output with the calibration's gain divided out (if any)."""
-        return flatten(out, self.inv_gain)
+    def flatten(self, out: Any, method: Any = None) -> Any:
+        """``method``'s output with the calibration's gain divided out (if any)."""
+        return flatten(out, self.inv_gain, method)
 
     def packed(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         raw = super().packed(start, stop)

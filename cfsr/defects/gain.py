@@ -120,13 +120,19 @@ def inverse_gain(gain: GainMap | None) -> np.ndarray | None:
     return None if gain is None else (np.float32(1.0) / gain.gain).astype(np.float32)
 
 
-def flatten(out: Any, inv: np.ndarray | None) -> Any:
+def flatten(out: Any, inv: np.ndarray | None, method: Any = None) -> Any:
     """A method's :class:`~cfsr.methods.registry.Output` with its rate divided by the gain
     (``inv`` = :func:`inverse_gain`), clipped to 1 spike/step; ``out`` itself when ``inv`` is
-    None. The rate is spikes/step, linear in the pixel's own, for every method."""
+    None. The rate is spikes/step, linear in the pixel's own; where ``method`` (a
+    :class:`~cfsr.methods.registry.Method`) builds a pixel from other pixels' spikes (its
+    ``borrowed_mask``, when the output has it), the pixel is left as it is: those pixels'
+    gains average out, its own does not apply."""
     if inv is None:
         return out
     from dataclasses import replace
 
     rate = np.minimum(np.asarray(out.rate, np.float32) * inv, np.float32(1.0))
+    borrowed = out.masks.get(getattr(method, "borrowed_mask", None) or "")
+    if borrowed is not None:
+        rate = np.where(borrowed, np.asarray(out.rate, np.float32), rate)
     return replace(out, rate=rate)

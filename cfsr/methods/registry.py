@@ -362,6 +362,11 @@ class Method:
         set, so that callers pass either. Without it they take the resolved parameters.
     max_window : int, optional
         Most steps ``before + after`` (default: see :attr:`max_span`).
+    borrowed_mask : str, optional
+        The output mask inside which the method builds a pixel's rate from other pixels'
+        spikes (CFSR's ``coarse``: its dynamic pixels); a flat-field gain is divided out of
+        the rate only outside it (:func:`cfsr.defects.flatten`). None: every pixel's rate is
+        its own.
     """
 
     name: str
@@ -377,6 +382,7 @@ class Method:
     max_window: int | None = None
     groups: GroupsFn | None = None
     settings: type[MethodSettings] | None = None
+    borrowed_mask: str | None = None
 
     def __post_init__(self) -> None:
         if self.settings is None:

@@ -285,5 +285,6 @@ register(
         settings=CfsrSettings,
         recurrent=True,
         groups=carry_groups,
+        borrowed_mask="coarse",  # its dynamic pixels come from spikes along the motion
     )
 )
