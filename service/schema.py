@@ -47,8 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from cfsr.methods import get_method
-from cfsr.methods import methods as registered
+from cfsr import methods as registry  # read at call time (tests stand one in)
 
 __all__ = [
     "COUNTER_DTYPE",
@@ -169,8 +168,8 @@ def display_masks() -> tuple[str, ...]:
     once, then the defect map's (:data:`DEFECTS_MASK`): ``("coarse", "fine", "motion",
     "defects")`` with the built-in methods."""
     out: list[str] = []
-    for name in registered():
-        for m in get_method(name).masks:
+    for name in registry.methods():
+        for m in registry.get_method(name).masks:
             if m not in out:
                 out.append(m)
     if DEFECTS_MASK not in out:

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from cfsr import plots  # read at call time (tests stand in for matplotlib)
 from cfsr.api import reconstruct_outputs
 from cfsr.batch import dask_client
 from cfsr.bench import FULL_GRID, QUICK_GRID, format_rows, grid_specs
@@ -31,7 +32,6 @@ from cfsr.evaluation import (
     split_method_specs,
 )
 from cfsr.metrics import cpbd, std_metric
-from cfsr.plots import have_matplotlib, plot_pareto
 from cfsr.simulate import SCENES
 
 # the checkout's root, where ../shared/data may sit beside it (not found in a wheel install)
@@ -335,8 +335,8 @@ def _print_accuracy(res: dict[str, Any], args: argparse.Namespace) -> None:
     if res["skipped"]:
         print(f"skipped (not in this build): {', '.join(res['skipped'])}")
     # the tables and the JSON are the results; the plot is extra (cfsr[bench])
-    if have_matplotlib():
-        png = plot_pareto(
+    if plots.have_matplotlib():
+        png = plots.plot_pareto(
             [r for r in res["rows"] if not r["scene"].startswith("reds:")],
             str(args.out / "pareto.png"),
         )

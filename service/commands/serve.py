@@ -16,7 +16,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from cfsr.cli._common import add_pool_arguments, available_memory, count_type
+from cfsr.cli import _common  # available_memory read at call time (tests stand one in)
+from cfsr.cli._common import add_pool_arguments, count_type
 from cfsr.cli._extras import require_extra
 from cfsr_live.replay.device import MAX_SPEED, MIN_SPEED
 from cfsr_live.service import sources
@@ -280,7 +281,7 @@ def run(args: argparse.Namespace) -> int:
 def _fit_ring_to_memory(settings, say) -> None:
     """Lower the ring's cap to a quarter of the memory available now (not below the smallest
     cap): the ring lives in shared memory, and a fast source fills all of it."""
-    share = max(RING_MAX_MB_RANGE[0] << 20, available_memory() // 4)
+    share = max(RING_MAX_MB_RANGE[0] << 20, _common.available_memory() // 4)
     if share < settings.ring_max_bytes:
         say(f"the ring holds at most {share >> 20} MiB (a quarter of the memory available), "
             f"less than --ring-max-mb {settings.ring_max_bytes >> 20}")

@@ -7,8 +7,8 @@ import logging
 
 from cfsr_live.driver.source import ReplayMode, Source
 from cfsr_live.replay.device import ReplayDevice
+from cfsr_live.service import demo as demo_file  # read at call time (tests stand one in)
 from cfsr_live.service.catalog import CatalogEntry, SourceCatalog
-from cfsr_live.service.demo import demo_path, ensure_demo
 from cfsr_live.service.settings import Settings, SourceSpec
 from cfsr_live.service.sources import OpenOptions, SourceKind
 
@@ -31,7 +31,7 @@ class DemoKind(SourceKind):
     order = 0
 
     def entries(self, catalog: SourceCatalog) -> list[CatalogEntry]:
-        dp = demo_path(catalog.settings.demo_steps)
+        dp = demo_file.demo_path(catalog.settings.demo_steps)
         demo = CatalogEntry(id="demo", kind="demo", name=NAME)
         if dp.exists():
             demo = catalog.describe_file(dp, "demo", "demo") or demo
@@ -41,10 +41,11 @@ class DemoKind(SourceKind):
         return [demo]
 
     def prepare(self, spec: SourceSpec, options: OpenOptions) -> None:
-        ensure_demo(_steps(options), say=options.say or (lambda m: None))
+        demo_file.ensure_demo(_steps(options), say=options.say or (lambda m: None))
 
     def open(self, spec: SourceSpec, options: OpenOptions) -> Source:
-        path = ensure_demo(_steps(options), say=options.say or (lambda m: log.warning("%s", m)))
+        path = demo_file.ensure_demo(_steps(options),
+                                     say=options.say or (lambda m: log.warning("%s", m)))
         kw = options.given("speed", "loop", "mode", "block_frames")
         if options.unpaced:
             kw["mode"] = ReplayMode.UNPACED
