@@ -13,7 +13,6 @@ from cfsr.api import reconstruct_outputs
 from cfsr.cli import main
 from cfsr.datfile import read_dat
 from cfsr.defects import DefectCorrector, DefectMap, GainMap, calibrate, corrected, map_of
-from cfsr.defects.gain import GAIN_RANGE
 from cfsr.simulate import Scene, simulate, simulate_to_dat
 from cfsr.spikes import SpikeRecording
 
@@ -85,15 +84,6 @@ def test_the_gain_travels_with_the_map_and_a_bad_one_is_refused(tmp_path):
                 {**d, "data": GainMap(np.ones((H, W - 1))).to_dict()["data"]}):
         with pytest.raises(ValueError, match="gain"):
             DefectMap.from_dict({**m.to_dict(), "gain": bad}, (H, W))
-
-
-def test_the_stored_gain_keeps_the_ends_of_its_range():
-    """The largest gain the map holds must survive its uint16 form (at 2**14 steps a unit,
-    a gain of 4 wrapped to 0 and the file was refused as out of range)."""
-    lo, hi = GAIN_RANGE
-    g = GainMap(np.where(np.arange(H * W).reshape(H, W) % 2 == 0, hi, lo), 100)
-    back = GainMap.from_dict(json.loads(json.dumps(g.to_dict())), (H, W))
-    assert np.abs(back.gain - g.gain).max() < 1e-4
 
 
 def test_live_and_offline_divide_the_same_gain_out_and_off_leaves_it():

@@ -33,9 +33,8 @@ __all__ = ["GainMap", "GAIN_RANGE", "gain_from_counts", "flatten", "inverse_gain
 #: Gains outside this range are no threshold spread but a broken pixel (the defect map's
 #: business) or a flat field that is not flat; they are clipped to it.
 GAIN_RANGE = (0.25, 4.0)
-#: uint16 steps per unit gain in the stored form (a resolution of 1.2e-4, far below the
-#: spread); the largest gain, GAIN_RANGE's 4, must fit a uint16: 4 * 2**14 would wrap to 0.
-_SCALE = 1 << 13
+#: uint16 steps per unit gain in the stored form (a resolution of 6e-5, far below the spread).
+_SCALE = 1 << 14
 
 
 @dataclass(frozen=True, eq=False)
